@@ -1,0 +1,79 @@
+"""Functional JAX environments (gymnax-style) and host-side reference environments.
+
+Usage::
+
+    import envs
+    env = envs.make("pendulum")
+    obs, state = env.reset(key, env.default_params)
+    obs, state, reward, terminated, truncated, info = env.step(key, state, action, params)
+
+To add an environment, add ``name -> factory`` to ``_REGISTRY`` below (or call ``register``). A
+factory is any callable returning an ``Environment``; keep heavy imports (MJX, Box2D) inside the
+factory so ``import envs`` stays cheap::
+
+    def _hopper(**kwargs):
+        from envs.hopper import Hopper
+
+        return Hopper(**kwargs)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from envs.base import Environment, time_limit
+from envs.classic import CartPole, MountainCar, Pendulum
+
+EnvFactory = Callable[..., Environment]
+
+_REGISTRY: dict[str, EnvFactory] = {
+    "cartpole": CartPole,
+    "mountaincar": MountainCar,
+    "pendulum": Pendulum,
+}
+
+KNOWN_ENVS: tuple[str, ...] = tuple(sorted(_REGISTRY))
+
+
+def register(name: str, factory: EnvFactory) -> None:
+    """Adds an environment to the registry (and to ``KNOWN_ENVS``).
+
+    Args:
+        name: registry name; must not be registered yet.
+        factory: callable ``factory(**kwargs) -> Environment``.
+    """
+    global KNOWN_ENVS
+    if name in _REGISTRY:
+        raise ValueError(f"environment {name!r} is already registered")
+    _REGISTRY[name] = factory
+    KNOWN_ENVS = tuple(sorted(_REGISTRY))
+
+
+def make(name: str, **kwargs) -> Environment:
+    """Builds a registered environment.
+
+    Args:
+        name: registry name, one of ``KNOWN_ENVS``.
+        **kwargs: forwarded to the env's factory (e.g. ``horizon=200``).
+
+    Returns:
+        The environment instance.
+
+    Raises:
+        ValueError: ``name`` is not registered; the message lists the known names.
+    """
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown environment {name!r}; known: {', '.join(sorted(_REGISTRY))}")
+    return _REGISTRY[name](**kwargs)
+
+
+__all__ = [
+    "KNOWN_ENVS",
+    "CartPole",
+    "Environment",
+    "MountainCar",
+    "Pendulum",
+    "make",
+    "register",
+    "time_limit",
+]
