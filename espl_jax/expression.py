@@ -1,0 +1,440 @@
+"""Host-side export of a trained symbolic network to formulas and deployable code (§3.2, App. A).
+
+One sympy expression per action dimension is built from the deterministic mask (p > 0.5, |w| > 1e-3)
+with the operators kept as *protected* sympy functions (``PMul``, ``PDiv``, ``PLog``, ``PExp``,
+``PCond``). That protected expression is the single source of truth:
+
+- ``to_python`` / ``to_c`` emit it verbatim (after common-subexpression elimination), with the
+  exact protected semantics of :mod:`espl_jax.operators`, so deployed code reproduces the network;
+- ``readable`` replaces the protected functions by the plain ones (``a*b``, ``a/b``, ``log``,
+  ``exp``) and simplifies with sympy: this is the formula printed for people (``to_text``,
+  ``to_latex``) and measured by ``complexity``. It equals the policy wherever no protection is
+  active.
+
+Constant subtrees (paths whose inputs are all pruned) fold to numbers as the expression is built.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from functools import cache
+
+import numpy as np
+import sympy as sp
+
+from espl_jax import operators as ops
+from espl_jax.selector import EXPORT_WEIGHT_THRESHOLD
+from espl_jax.symbolic import SymbolicNetwork
+
+# Readable expressions larger than this (in tree length) are not passed to sympy.simplify, whose
+# cost grows quickly with size; they are still canonicalised (like terms collected) by sympy.
+SIMPLIFY_MAX_LENGTH = 400
+
+
+def _num(x: sp.Expr) -> float | None:
+    """The float value of a numeric sympy expression, else None."""
+    return float(x) if x.is_Number else None
+
+
+class PMul(sp.Function):
+    """clip(a, ±100) · clip(b, ±100)."""
+
+    nargs = 2
+
+    @classmethod
+    def eval(cls, a, b):
+        if a.is_zero or b.is_zero:
+            return sp.S.Zero
+        va, vb = _num(a), _num(b)
+        if va is not None and vb is not None:
+            bound = ops.MUL_BOUND
+            return sp.Float(min(max(va, -bound), bound) * min(max(vb, -bound), bound))
+        return None
+
+
+class PDiv(sp.Function):
+    """a / b if b >= 0.01 else 0."""
+
+    nargs = 2
+
+    @classmethod
+    def eval(cls, a, b):
+        vb = _num(b)
+        if vb is not None:
+            # A constant denominator decides the branch once and for all.
+            return a / b if vb >= ops.DIV_MIN_DENOMINATOR else sp.S.Zero
+        if a.is_zero:
+            return sp.S.Zero
+        return None
+
+
+class PLog(sp.Function):
+    """log(max(x, 0.001))."""
+
+    nargs = 1
+
+    @classmethod
+    def eval(cls, x):
+        v = _num(x)
+        return None if v is None else sp.Float(math.log(max(v, ops.LOG_MIN_ARGUMENT)))
+
+
+class PExp(sp.Function):
+    """exp(clip(x, -10, 4))."""
+
+    nargs = 1
+
+    @classmethod
+    def eval(cls, x):
+        v = _num(x)
+        if v is None:
+            return None
+        return sp.Float(math.exp(min(max(v, ops.EXP_MIN_ARGUMENT), ops.EXP_MAX_ARGUMENT)))
+
+
+def _sigmoid(v: float) -> float:
+    return 1.0 / (1.0 + math.exp(-v)) if v >= 0 else math.exp(v) / (1.0 + math.exp(v))
+
+
+class PCond(sp.Function):
+    """sigmoid(c)·a + (1 − sigmoid(c))·b."""
+
+    nargs = 3
+
+    @classmethod
+    def eval(cls, c, a, b):
+        v = _num(c)
+        if v is None:
+            return a if a == b else None
+        gate = sp.Float(_sigmoid(v))
+        return gate * a + (1 - gate) * b
+
+
+def _sin(x):
+    return sp.sin(x)
+
+
+def _cos(x):
+    return sp.cos(x)
+
+
+def _identity(x):
+    return x
+
+
+SYMPY_OPERATORS = {
+    "mul": PMul,
+    "div": PDiv,
+    "log": PLog,
+    "exp": PExp,
+    "sin": _sin,
+    "cos": _cos,
+    "identity": _identity,
+    "cond": PCond,
+}
+
+
+def observation_symbols(obs_dim: int) -> list[sp.Symbol]:
+    """x0 … x{n−1}: the observation variables of exported formulas."""
+    return [sp.Symbol(f"x{i}", real=True) for i in range(obs_dim)]
+
+
+def pruned_weights(
+    weights: Sequence[np.ndarray],
+    probs: Sequence[np.ndarray] | None,
+    weight_threshold: float = EXPORT_WEIGHT_THRESHOLD,
+) -> list[np.ndarray]:
+    """w · 1[p > 0.5] · 1[|w| > threshold]; with ``probs=None`` (L1 ablation) only the threshold."""
+    out = []
+    for i, w in enumerate(weights):
+        w = np.asarray(w, np.float64)
+        keep = np.abs(w) > weight_threshold
+        if probs is not None:
+            keep &= np.asarray(probs[i]) > 0.5
+        out.append(np.where(keep, w, 0.0))
+    return out
+
+
+def network_expressions(
+    network: SymbolicNetwork,
+    params: dict[str, Sequence[np.ndarray]],
+    probs: Sequence[np.ndarray] | None,
+) -> list[sp.Expr]:
+    """Protected sympy expressions, one per action dimension, of the deterministic policy.
+
+    Args:
+        network: the network structure.
+        params: {"w": [...], "b": [...]} with leading action axis (numpy or jax arrays).
+        probs: path probabilities shaped like params["w"], or None for the L1 ablation.
+
+    Returns:
+        ``action_dim`` expressions in the symbols x0 … x{obs_dim−1} giving the pre-tanh action.
+    """
+    weights = pruned_weights(params["w"], probs)
+    biases = [np.asarray(b, np.float64) for b in params["b"]]
+    symbols = observation_symbols(network.obs_dim)
+    exprs = []
+    for a in range(network.action_dim):
+        x: list[sp.Expr] = list(symbols)
+        for layer, ops_names in enumerate(network.layout.layers):
+            y = _affine(weights[layer][a], biases[layer][a], x)
+            outputs, row = [], 0
+            for name in ops_names:
+                arity = ops.get_operator(name).arity
+                outputs.append(SYMPY_OPERATORS[name](*y[row : row + arity]))
+                row += arity
+            x = x + outputs if network.layout.dense else outputs
+        exprs.append(_affine(weights[-1][a], biases[-1][a], x)[0])
+    return exprs
+
+
+def _affine(w: np.ndarray, b: np.ndarray, x: list[sp.Expr]) -> list[sp.Expr]:
+    """Rows of w·x + b as sympy expressions, skipping pruned (zero) weights."""
+    rows = []
+    for r in range(w.shape[0]):
+        terms = [sp.Float(float(w[r, j])) * x[j] for j in np.flatnonzero(w[r])]
+        rows.append(sp.Add(*terms, sp.Float(float(b[r]))))
+    return rows
+
+
+def _unprotect(expr: sp.Expr) -> sp.Expr:
+    """Replace the protected functions by the plain operators they guard."""
+    return (
+        expr.replace(PMul, lambda a, b: a * b)
+        .replace(PDiv, lambda a, b: a / b)
+        .replace(PLog, sp.log)
+        .replace(PExp, sp.exp)
+        .replace(PCond, lambda c, a, b: a / (1 + sp.exp(-c)) + b * (1 - 1 / (1 + sp.exp(-c))))
+    )
+
+
+def readable(expr: sp.Expr) -> sp.Expr:
+    """The plain-operator formula, simplified by sympy when small enough to do so quickly."""
+    plain = _unprotect(expr)
+    if complexity(plain) <= SIMPLIFY_MAX_LENGTH:
+        simplified = sp.simplify(plain)
+        if complexity(simplified) <= complexity(plain):
+            return simplified
+    return plain
+
+
+def round_floats(expr: sp.Expr, digits: int = 4) -> sp.Expr:
+    """Round every float constant to ``digits`` significant digits, for reading."""
+    replacements = {f: sp.Float(float(f"{float(f):.{digits}g}")) for f in expr.atoms(sp.Float)}
+    return expr.xreplace(replacements)
+
+
+def complexity(expr: sp.Expr) -> int:
+    """The paper's length metric: operators, constants and variables in the expression.
+
+    Sums and products of k terms count k − 1 binary operators; a subtraction ``a − c·b`` counts
+    as one operator (the −1 factor is not a constant); ``a·b**−1`` is one division ``a / b``.
+    The count is over the expression *tree*, memoised over the shared DAG.
+    """
+    return _length(expr)
+
+
+@cache
+def _length(e: sp.Expr) -> int:
+    if e.is_Atom:
+        return 1
+    if e.is_Add:
+        return len(e.args) - 1 + sum(_length(a) for a in e.args)
+    if e.is_Mul:
+        factors = list(e.args)
+        if factors[0] == -1:  # negation: merged into the enclosing subtraction
+            factors = factors[1:]
+        # A factor b**-1 is a division: the operator replaces the multiplication, so it counts b.
+        lengths = [_length(f.base if _is_reciprocal(f) else f) for f in factors]
+        return len(factors) - 1 + sum(lengths)
+    if _is_reciprocal(e):  # a lone 1/b: "/", 1, b
+        return 2 + _length(e.base)
+    return 1 + sum(_length(a) for a in e.args)
+
+
+def _is_reciprocal(e: sp.Expr) -> bool:
+    return e.is_Pow and e.exp == -1
+
+
+def mean_complexity(exprs: Sequence[sp.Expr]) -> float:
+    """Complexity averaged over action dimensions, as reported in the paper."""
+    return float(np.mean([complexity(e) for e in exprs]))
+
+
+def to_text(exprs: Sequence[sp.Expr], digits: int = 4) -> str:
+    """``a0 = …`` lines of readable formulas with constants rounded for reading."""
+    return "\n".join(
+        f"a{i} = {sp.sstr(round_floats(readable(e), digits))}" for i, e in enumerate(exprs)
+    )
+
+
+def to_latex(exprs: Sequence[sp.Expr], digits: int = 4) -> str:
+    """One LaTeX equation line per action dimension."""
+    return "\n".join(
+        f"a_{{{i}}} = {sp.latex(round_floats(readable(e), digits))}" for i, e in enumerate(exprs)
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Code generation: the protected expression, after common-subexpression elimination.
+
+_PY_CALLS = {PMul: "_mul", PDiv: "_div", PLog: "_log", PExp: "_exp", PCond: "_cond"}
+_PY_CALLS.update({sp.sin: "math.sin", sp.cos: "math.cos", sp.exp: "math.exp", sp.log: "math.log"})
+_C_CALLS = {PMul: "p_mul", PDiv: "p_div", PLog: "p_log", PExp: "p_exp", PCond: "p_cond"}
+_C_CALLS.update({sp.sin: "sin", sp.cos: "cos", sp.exp: "exp", sp.log: "log"})
+
+
+def _code(e: sp.Expr, calls: dict, number: str, power: str) -> str:
+    """Render an expression with explicit parentheses; ``number``/``power`` are format strings."""
+    if e.is_Symbol:
+        return e.name
+    if e.is_Number:
+        return number.format(float(e))
+    if e.is_Add:
+        return "(" + " + ".join(_code(a, calls, number, power) for a in e.args) + ")"
+    if e.is_Mul:
+        return "(" + " * ".join(_code(a, calls, number, power) for a in e.args) + ")"
+    if e.is_Pow:
+        return power.format(_code(e.base, calls, number, power), float(e.exp))
+    if e.func in calls:
+        args = ", ".join(_code(a, calls, number, power) for a in e.args)
+        return f"{calls[e.func]}({args})"
+    raise ValueError(f"cannot generate code for {e.func} in {e}")
+
+
+def _cse(exprs: Sequence[sp.Expr]) -> tuple[list[tuple[sp.Symbol, sp.Expr]], list[sp.Expr]]:
+    return sp.cse(list(exprs), symbols=sp.numbered_symbols("t"), optimizations=None)
+
+
+_PY_TEMPLATE = '''"""Symbolic policy exported by espl-jax. Needs only Python's math and numpy.
+
+{formula}
+
+act(obs) evaluates these formulas with the protected operators used in training, squashes with tanh
+and scales to the action bounds [{low}, {high}].
+"""
+
+import math
+
+import numpy as np
+
+OBS_DIM = {obs_dim}
+ACTION_LOW = np.array({low}, dtype=np.float64)
+ACTION_HIGH = np.array({high}, dtype=np.float64)
+
+
+def _mul(a, b):
+    return min(max(a, -100.0), 100.0) * min(max(b, -100.0), 100.0)
+
+
+def _div(a, b):
+    return a / b if b >= 0.01 else 0.0
+
+
+def _log(x):
+    return math.log(max(x, 0.001))
+
+
+def _exp(x):
+    return math.exp(min(max(x, -10.0), 4.0))
+
+
+def _cond(c, a, b):
+    g = 1.0 / (1.0 + math.exp(-c)) if c >= 0 else math.exp(c) / (1.0 + math.exp(c))
+    return g * a + (1.0 - g) * b
+
+
+def pre_tanh(obs):
+    """The formulas' raw values, one per action dimension."""
+    {unpack}
+{body}
+    return [{results}]
+
+
+def act(obs):
+    """Action in the environment's own units for one observation of shape ({obs_dim},)."""
+    u = np.tanh(np.asarray(pre_tanh(obs), dtype=np.float64))
+    return ACTION_LOW + (u + 1.0) * 0.5 * (ACTION_HIGH - ACTION_LOW)
+'''
+
+
+def to_python(
+    exprs: Sequence[sp.Expr],
+    obs_dim: int,
+    action_low: Sequence[float],
+    action_high: Sequence[float],
+) -> str:
+    """Source of a standalone ``policy.py`` whose ``act(obs)`` reproduces the network exactly."""
+    replacements, reduced = _cse(exprs)
+    py = {"calls": _PY_CALLS, "number": "{!r}", "power": "{}**{:g}"}
+    names = ", ".join(f"x{i}" for i in range(obs_dim))
+    unpack = f"{names}{',' if obs_dim == 1 else ''} = (float(v) for v in obs)"
+    body = "\n".join(f"    {s} = {_code(e, **py)}" for s, e in replacements)
+    return _PY_TEMPLATE.format(
+        formula=to_text(exprs),
+        low=[float(v) for v in action_low],
+        high=[float(v) for v in action_high],
+        obs_dim=obs_dim,
+        unpack=unpack,
+        body=body,
+        results=", ".join(_code(e, **py) for e in reduced),
+    )
+
+
+_C_TEMPLATE = """/* Symbolic policy exported by espl-jax.
+{formula}
+ * act(obs, action) evaluates the formulas with the protected operators used in training, squashes
+ * with tanh and scales to the action bounds. Compile with: cc -O2 -c policy.c (link with -lm). */
+#include <math.h>
+
+#define OBS_DIM {obs_dim}
+#define ACTION_DIM {action_dim}
+
+static const double ACTION_LOW[ACTION_DIM] = {{{low}}};
+static const double ACTION_HIGH[ACTION_DIM] = {{{high}}};
+
+static double clampd(double x, double lo, double hi) {{ return x < lo ? lo : (x > hi ? hi : x); }}
+static double p_mul(double a, double b) {{
+    return clampd(a, -100.0, 100.0) * clampd(b, -100.0, 100.0);
+}}
+static double p_div(double a, double b) {{ return b >= 0.01 ? a / b : 0.0; }}
+static double p_log(double x) {{ return log(x > 0.001 ? x : 0.001); }}
+static double p_exp(double x) {{ return exp(clampd(x, -10.0, 4.0)); }}
+static double p_cond(double c, double a, double b) {{
+    double g = c >= 0 ? 1.0 / (1.0 + exp(-c)) : exp(c) / (1.0 + exp(c));
+    return g * a + (1.0 - g) * b;
+}}
+
+void act(const double *obs, double *action) {{
+{unpack}
+{body}
+    double u[ACTION_DIM] = {{{results}}};
+    for (int i = 0; i < ACTION_DIM; ++i)
+        action[i] = ACTION_LOW[i] + (tanh(u[i]) + 1.0) * 0.5 * (ACTION_HIGH[i] - ACTION_LOW[i]);
+}}
+"""
+
+
+def to_c(
+    exprs: Sequence[sp.Expr],
+    obs_dim: int,
+    action_low: Sequence[float],
+    action_high: Sequence[float],
+) -> str:
+    """C99 source of ``void act(const double *obs, double *action)``, same semantics as Python."""
+    replacements, reduced = _cse(exprs)
+    c = {"calls": _C_CALLS, "number": "{:.17g}", "power": "pow({}, {:g})"}
+    unpack = "\n".join(f"    const double x{i} = obs[{i}];" for i in range(obs_dim))
+    body = "\n".join(f"    const double {s} = {_code(e, **c)};" for s, e in replacements)
+    formula = "\n".join(f" * {line}" for line in to_text(exprs).splitlines())
+    return _C_TEMPLATE.format(
+        formula=formula,
+        obs_dim=obs_dim,
+        action_dim=len(exprs),
+        low=", ".join(f"{float(v):.17g}" for v in action_low),
+        high=", ".join(f"{float(v):.17g}" for v in action_high),
+        unpack=unpack,
+        body=body,
+        results=", ".join(_code(e, **c) for e in reduced),
+    )

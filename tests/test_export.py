@@ -1,0 +1,173 @@
+"""Export (host side): the printed formula and the generated code are the policy that ran."""
+
+import ctypes
+import importlib.util
+import shutil
+import subprocess
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import sympy as sp
+
+from espl_jax import expression as ex
+from espl_jax import selector
+from espl_jax.symbolic import LAYOUTS, SymbolicNetwork
+
+OBS_DIM = 4
+
+
+def _load_policy(source: str, path):
+    path.write_text(source)
+    spec = importlib.util.spec_from_file_location(f"policy_{abs(hash(str(path)))}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _network_actions(net, params, probs, states, dtype=jnp.float32):
+    """Pre-tanh values and tanh of the network under the deterministic (export) mask.
+
+    float32 is how the network runs in training; float64 (jax x64) evaluates the same network
+    without float32 round-off, which isolates the semantics of the export from precision.
+    """
+    with jax.enable_x64(dtype == jnp.float64):
+        cast = lambda tree: jax.tree.map(lambda a: jnp.asarray(a, dtype), tree)  # noqa: E731
+        params, probs = cast(params), cast(probs)
+        mask = selector.deterministic_mask(probs, params["w"])
+        apply = jax.jit(jax.vmap(net.apply, in_axes=(None, None, 0)))
+        pre, _ = apply(params, mask, jnp.asarray(states, dtype))
+        pre = np.asarray(pre, np.float64)
+    return pre, np.tanh(pre)
+
+
+def _zero_params(net):
+    return jax.tree.map(lambda a: np.zeros(a.shape, np.float32), net.init(jax.random.key(0)))
+
+
+def test_known_answer_exports_exactly_the_formula(tmp_path):
+    net = SymbolicNetwork(LAYOUTS["arranged"], OBS_DIM, 1)
+    params = _zero_params(net)
+    params["w"][-1][0, 0, 2] = 17.17
+    params["w"][-1][0, 0, 3] = 1.2
+    probs = [(w != 0).astype(np.float32) for w in params["w"]]
+    exprs = ex.network_expressions(net, params, probs)
+    x = ex.observation_symbols(OBS_DIM)
+    readable = ex.round_floats(ex.readable(exprs[0]))
+    assert sp.simplify(readable - (sp.Float(17.17) * x[2] + sp.Float(1.2) * x[3])) == 0
+    assert ex.to_text(exprs) == "a0 = 17.17*x2 + 1.2*x3"
+    assert ex.mean_complexity([readable]) == 7  # +, *, 17.17, x2, *, 1.2, x3
+    assert "x_{2}" in ex.to_latex(exprs) and "17.17" in ex.to_latex(exprs)
+    policy = _load_policy(ex.to_python(exprs, OBS_DIM, [-2.0], [2.0]), tmp_path / "policy.py")
+    obs = np.array([0.3, -1.0, 0.02, -0.1])
+    np.testing.assert_allclose(policy.act(obs), 2.0 * np.tanh(17.17 * 0.02 - 1.2 * 0.1), rtol=1e-6)
+
+
+def _random_network(seed, action_dim=2):
+    """Random weights at training scale, random probabilities, and some tiny weights to drop."""
+    net = SymbolicNetwork(LAYOUTS["arranged"], OBS_DIM, action_dim)
+    rng = np.random.default_rng(seed)
+    params = jax.tree.map(np.asarray, net.init(jax.random.key(seed)))
+    params["w"] = [
+        w * rng.choice([1.0, 1e-4, 3.0], size=w.shape, p=[0.8, 0.1, 0.1]) for w in params["w"]
+    ]
+    params["w"] = [w.astype(np.float32) for w in params["w"]]
+    probs = [rng.uniform(0, 1, w.shape).astype(np.float32) for w in params["w"]]
+    return net, params, probs
+
+
+def test_policy_py_matches_network_on_random_networks_and_states(tmp_path):
+    rng = np.random.default_rng(0)
+    states = rng.normal(size=(1200, OBS_DIM)) * 10.0 ** rng.uniform(-3, 3, size=(1200, 1))
+    low, high = np.array([-1.0, -3.0]), np.array([1.0, 0.5])
+    scale = lambda a: low + (a + 1) / 2 * (high - low)  # noqa: E731
+    for seed in range(4):
+        net, params, probs = _random_network(seed)
+        exprs = ex.network_expressions(net, params, probs)
+        policy = _load_policy(ex.to_python(exprs, OBS_DIM, low, high), tmp_path / f"p{seed}.py")
+        ours_pre = np.array([policy.pre_tanh(s) for s in states])
+        ours = np.array([policy.act(s) for s in states])
+        # The same network in float64: exported code and network agree to 1e-5 everywhere.
+        pre64, act64 = _network_actions(net, params, probs, states, jnp.float64)
+        np.testing.assert_allclose(ours_pre, pre64, rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(ours, scale(act64), atol=1e-5)
+        # The float32 network as trained: untrained random networks chain products and
+        # quotients that amplify float32 round-off, so a few states differ beyond 1e-5.
+        _, act32 = _network_actions(net, params, probs, states)
+        close = np.abs(ours - scale(act32)) <= 1e-5
+        assert close.mean() > 0.99 and np.abs(ours - scale(act32)).max() < 1e-3
+
+
+# Single-path networks that put an observation straight into one protected operator, so every
+# protection branch is exercised on both sides. Each entry: layer, first row, operator index in
+# the layer, the observations feeding the rows, and the branch predicate on those observations.
+BRANCHES = {
+    "div": (1, 0, 0, (0, 1), lambda s: s[:, 1] < 0.01),
+    "log": (2, 0, 0, (0,), lambda s: s[:, 0] < 0.001),
+    "exp_low": (2, 2, 2, (0,), lambda s: s[:, 0] < -10),
+    "exp_high": (2, 2, 2, (0,), lambda s: s[:, 0] > 4),
+    "mul": (0, 0, 0, (0, 1), lambda s: np.abs(s[:, :2]).max(axis=1) > 100),
+}
+
+
+@pytest.mark.parametrize("branch", sorted(BRANCHES))
+def test_policy_py_matches_network_through_every_protection_branch(branch, tmp_path):
+    layer, row, op_index, sources, protected = BRANCHES[branch]
+    net = SymbolicNetwork(LAYOUTS["arranged"], OBS_DIM, 1)
+    params = _zero_params(net)
+    for k, j in enumerate(sources):
+        params["w"][layer][0, row + k, j] = 1.0
+    out_column = OBS_DIM + sum(len(ops) for ops in net.layout.layers[:layer]) + op_index
+    params["w"][-1][0, 0, out_column] = 0.01 if branch == "mul" else 0.2
+    probs = [(w != 0).astype(np.float32) for w in params["w"]]
+
+    rng = np.random.default_rng(1)
+    scale = {"div": 0.02, "log": 0.002, "exp_low": 20.0, "exp_high": 8.0, "mul": 150.0}[branch]
+    states = rng.uniform(-scale, scale, size=(1000, OBS_DIM))
+    hit = protected(states)
+    assert 100 < hit.sum() < 900  # both sides of the branch are well represented
+
+    exprs = ex.network_expressions(net, params, probs)
+    policy = _load_policy(ex.to_python(exprs, OBS_DIM, [-1.0], [1.0]), tmp_path / "policy.py")
+    for dtype in (jnp.float32, jnp.float64):
+        pre, act = _network_actions(net, params, probs, states, dtype)
+        np.testing.assert_allclose([policy.pre_tanh(s) for s in states], pre, rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose([policy.act(s) for s in states], act, atol=1e-5)
+
+
+@pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler on this machine")
+def test_c_export_matches_python_export(tmp_path):
+    net, params, probs = _random_network(7)
+    exprs = ex.network_expressions(net, params, probs)
+    low, high = [-1.0, -3.0], [1.0, 0.5]
+    (tmp_path / "policy.c").write_text(ex.to_c(exprs, OBS_DIM, low, high))
+    lib = tmp_path / "policy.so"
+    subprocess.run(
+        ["cc", "-O2", "-shared", "-fPIC", "-o", str(lib), str(tmp_path / "policy.c"), "-lm"],
+        check=True,
+    )
+    c_act = ctypes.CDLL(str(lib)).act
+    policy = _load_policy(ex.to_python(exprs, OBS_DIM, low, high), tmp_path / "policy.py")
+    rng = np.random.default_rng(3)
+    for s in rng.normal(size=(200, OBS_DIM)) * 5:
+        out = (ctypes.c_double * 2)()
+        c_act((ctypes.c_double * OBS_DIM)(*s), out)
+        np.testing.assert_allclose(list(out), policy.act(s), rtol=1e-12, atol=1e-12)
+
+
+def test_l1_ablation_exports_without_probabilities():
+    net = SymbolicNetwork(LAYOUTS["arranged"], OBS_DIM, 1)
+    params = _zero_params(net)
+    params["w"][-1][0, 0, 0] = 2.0
+    params["w"][-1][0, 0, 1] = 5e-4  # below the export threshold: dropped
+    params["b"][-1][0, 0] = 0.5
+    assert ex.to_text(ex.network_expressions(net, params, None)) == "a0 = 2.0*x0 + 0.5"
+
+
+def test_complexity_counts_operators_constants_and_variables():
+    x0, x1 = sp.symbols("x0 x1")
+    assert ex.complexity(x0) == 1
+    assert ex.complexity(2.5 * x0 - x1) == 5  # -, *, 2.5, x0, x1
+    assert ex.complexity(sp.sin(x0) / x1) == 4  # /, sin, x0, x1
+    assert ex.mean_complexity([x0, 2.5 * x0 - x1]) == 3.0
