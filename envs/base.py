@@ -1,0 +1,124 @@
+"""The functional environment interface shared by every JAX environment (gymnax-style).
+
+An environment is a stateless object holding only static metadata (sizes, horizon, action bounds).
+Everything that changes lives in two pytrees passed explicitly: ``params`` (physics/task parameters,
+a ``flax.struct.dataclass`` with float leaves, so a meta-RL task batch is a vmapped batch of params)
+and ``state`` (physics state plus the step counter ``t``)::
+
+    env = envs.make("pendulum")
+    params = env.default_params
+    obs, state = env.reset(key, params)
+    obs, state, reward, terminated, truncated, info = env.step(key, state, action, params)
+
+``action`` is normalized to [-1, 1] per dimension; ``step`` clips it and scales it linearly to the
+env's own bounds ``[action_low, action_high]``. ``terminated`` is a true end (no bootstrap),
+``truncated`` is the time limit (``t >= horizon`` and not terminated). ``step`` never auto-resets.
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+PRNGKey = jax.Array
+EnvParams = Any
+EnvState = Any
+StepOutput = tuple[jax.Array, Any, jax.Array, jax.Array, jax.Array, dict[str, jax.Array]]
+
+
+class Environment(abc.ABC):
+    """Base class of the functional JAX environments.
+
+    Subclasses set the static attributes in ``__init__`` and implement ``default_params``,
+    ``reset`` and ``step`` as pure functions of their arguments (jit- and vmap-able, including
+    vmap over ``params``).
+
+    Attributes:
+        name: registry name, e.g. ``"pendulum"``.
+        obs_dim: size of the observation vector.
+        action_dim: size of the action vector.
+        horizon: time limit; ``truncated`` becomes true at ``t == horizon``.
+        action_low: numpy float array (action_dim,), lower action bound in the env's own units.
+        action_high: numpy float array (action_dim,), upper action bound in the env's own units.
+    """
+
+    name: str
+    obs_dim: int
+    action_dim: int
+    horizon: int
+    action_low: np.ndarray
+    action_high: np.ndarray
+
+    @property
+    @abc.abstractmethod
+    def default_params(self) -> EnvParams:
+        """The reference physics/task parameters (a ``flax.struct.dataclass``)."""
+
+    @abc.abstractmethod
+    def reset(self, key: PRNGKey, params: EnvParams) -> tuple[jax.Array, EnvState]:
+        """Samples an initial state.
+
+        Args:
+            key: PRNG key.
+            params: env parameters (``default_params`` or a variant of it).
+
+        Returns:
+            ``(obs, state)``: obs float32 (obs_dim,) and the initial state with ``t == 0``.
+        """
+
+    @abc.abstractmethod
+    def step(
+        self, key: PRNGKey, state: EnvState, action: jax.Array, params: EnvParams
+    ) -> StepOutput:
+        """Advances the env by one step (no auto-reset).
+
+        Args:
+            key: PRNG key (unused by deterministic envs).
+            state: current state.
+            action: float32 (action_dim,), normalized to [-1, 1]; clipped to that range.
+            params: env parameters.
+
+        Returns:
+            ``(obs, state, reward, terminated, truncated, info)``: obs float32 (obs_dim,), the next
+            state, reward float32 (), terminated and truncated bool (), info a dict.
+        """
+
+    def scale_action(self, action: jax.Array) -> jax.Array:
+        """Clips a normalized action to [-1, 1] and maps it linearly onto the env's bounds.
+
+        Computed as ``center + a * half_range``, which equals ``low + (a + 1) / 2 * (high - low)``
+        but is exact for symmetric bounds (no rounding through ``a + 1``).
+
+        Args:
+            action: float (action_dim,), normalized action.
+
+        Returns:
+            float32 (action_dim,), the action in the env's own units.
+        """
+        low = np.asarray(self.action_low, np.float64)
+        high = np.asarray(self.action_high, np.float64)
+        center = jnp.asarray((high + low) / 2.0, jnp.float32)
+        half_range = jnp.asarray((high - low) / 2.0, jnp.float32)
+        action = jnp.clip(jnp.asarray(action, jnp.float32), -1.0, 1.0)
+        return center + action * half_range
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(name={self.name!r}, horizon={self.horizon})"
+
+
+def time_limit(t: jax.Array, horizon: int, terminated: jax.Array) -> jax.Array:
+    """Truncation flag: the time limit is reached and the episode did not truly end.
+
+    Args:
+        t: int32 (), step counter after the step.
+        horizon: the env's time limit.
+        terminated: bool (), true-end flag of the same step.
+
+    Returns:
+        bool (), ``(t >= horizon) & ~terminated``.
+    """
+    return jnp.logical_and(t >= horizon, jnp.logical_not(terminated))
