@@ -1,0 +1,48 @@
+"""Orbax checkpoints of the (seed-stacked) TrainState, with readable errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import jax
+import orbax.checkpoint as ocp
+
+from espl_jax.config import UserError
+
+KEEP = 2  # the newest and the one before it: a crash while writing never loses the last good one
+
+
+def manager(directory: str | Path) -> ocp.CheckpointManager:
+    options = ocp.CheckpointManagerOptions(max_to_keep=KEEP, create=True)
+    return ocp.CheckpointManager(Path(directory).resolve(), options=options)
+
+
+def save(mngr: ocp.CheckpointManager, iteration: int, state: Any) -> None:
+    """Write the state under ``iteration`` and wait until it is committed to disk."""
+    mngr.save(iteration, args=ocp.args.StandardSave(state), force=True)
+    mngr.wait_until_finished()
+
+
+def restore_latest(directory: str | Path, like: Any) -> tuple[int, Any]:
+    """The newest complete checkpoint in ``directory``, restored into the structure of ``like``.
+
+    Raises:
+        UserError: no checkpoint, or one that cannot be read (corrupt or from another config).
+    """
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise UserError(f"no checkpoints in {directory.parent}: {directory.name}/ is missing")
+    with manager(directory) as mngr:
+        step = mngr.latest_step()
+        if step is None:
+            raise UserError(f"no complete checkpoint in {directory}")
+        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, like)
+        try:
+            state = mngr.restore(step, args=ocp.args.StandardRestore(abstract))
+        except Exception as err:  # orbax raises many types for unreadable data
+            raise UserError(
+                f"checkpoint {directory / str(step)} is unreadable ({type(err).__name__}: "
+                f"{str(err).splitlines()[0][:200]}); it may be corrupt or from another config"
+            ) from None
+    return step, state

@@ -1,0 +1,48 @@
+"""python -m espl_jax.evaluate RUN_DIR: returns of the exported policy.py in the reference env."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from espl_jax import config as config_lib
+from espl_jax import evaluation, run
+from espl_jax.cli import run_main
+from espl_jax.config import UserError
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="python -m espl_jax.evaluate",
+        description="Run a run directory's exported policy.py in the reference environment "
+        "(gymnasium, or DSO's CartPole in numpy) and report its mean return; the result is "
+        "recorded in eval.json under 'reference_eval'.",
+    )
+    p.add_argument("run_dir", help="a run directory written by espl_jax.train")
+    p.add_argument("--episodes", type=int, default=1000, help="episodes (default: 1000)")
+    p.add_argument("--seed", type=int, default=10_000, help="first episode seed")
+    args = p.parse_args(argv)
+    if args.episodes <= 0:
+        raise UserError("--episodes must be positive")
+    run_dir = Path(args.run_dir)
+    if not (run_dir / "config.yaml").is_file():
+        raise UserError(f"{run_dir} is not a run directory (no config.yaml)")
+    config = config_lib.load(run_dir / "config.yaml")
+    policy = evaluation.load_policy(run_dir / run.POLICY_FILE)
+    returns = evaluation.rollout_returns(policy.act, config.env, args.episodes, args.seed)
+    summary = evaluation.summary(returns)
+    eval_path = run_dir / run.EVAL_FILE
+    record = json.loads(eval_path.read_text()) if eval_path.is_file() else {}
+    record["reference_eval"] = {**summary, "first_seed": args.seed}
+    eval_path.write_text(json.dumps(record, indent=2) + "\n")
+    print(
+        f"{config.env}: {summary['mean']:.2f} ± {summary['std']:.2f} over "
+        f"{summary['episodes']} episodes (min {summary['min']:.2f}, max {summary['max']:.2f})"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_main(main))

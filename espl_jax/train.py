@@ -1,0 +1,79 @@
+"""python -m espl_jax.train --env NAME: learn a symbolic policy from scratch (ESPL, Algorithm 1)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from espl_jax import config as config_lib
+from espl_jax import run
+from espl_jax.cli import run_main
+from espl_jax.config import UserError
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m espl_jax.train",
+        description="Learn a compact symbolic policy with ESPL (SAC + symbolic network + path "
+        "selector). Defaults come from configs/ENV.yaml; the run directory receives the config, "
+        "metrics, a learning curve, checkpoints, the formula, policy.py and eval.json.",
+    )
+    p.add_argument("--env", default="cartpole", help="environment name (default: cartpole)")
+    p.add_argument("--seeds", type=int, help="independent runs vmapped together; best is kept")
+    p.add_argument("--iterations", type=int, help="training iterations (collect + update)")
+    p.add_argument("--config", help="YAML file overriding configs/ENV.yaml")
+    p.add_argument("--actor", choices=["symbolic", "mlp"], help="symbolic (ESPL) or mlp (SAC)")
+    p.add_argument("--seed", type=int, help="base random seed")
+    p.add_argument("--out", help="run directory (default: runs/ENV-ACTOR-TIMESTAMP)")
+    p.add_argument("--resume", metavar="RUN_DIR", help="continue a run from its last checkpoint")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    if args.resume:
+        run_dir = Path(args.resume)
+        if not (run_dir / "config.yaml").is_file():
+            raise UserError(f"cannot resume: {run_dir} is not a run directory (no config.yaml)")
+        config = config_lib.load(run_dir / "config.yaml")
+        if args.iterations is not None:
+            config = config_lib.from_mapping({"iterations": args.iterations}, base=config)
+    else:
+        config = config_lib.resolve(
+            args.env,
+            args.config,
+            seeds=args.seeds,
+            iterations=args.iterations,
+            actor=args.actor,
+            seed=args.seed,
+        )
+        run_dir = Path(args.out) if args.out else run.default_run_dir(config)
+    started = time.perf_counter()
+    result = run.train(
+        config, run_dir, resume=bool(args.resume), show_progress=not args.no_progress
+    )
+    wall = time.perf_counter() - started
+    print(f"\nrun directory: {run_dir}")
+    if "formula" in result:
+        print(f"formula (seed {result['best_seed']}, length {result['length']:.0f}):")
+        print("  " + result["formula"].replace("\n", "\n  "))
+    ev = result["jax_eval"]
+    print(f"exported policy, {ev['episodes']} episodes in JAX: {ev['mean']:.2f} ± {ev['std']:.2f}")
+    if "reference_eval" in result:
+        ref = result["reference_eval"]
+        print(
+            f"policy.py in the reference env, {ref['episodes']} episodes: "
+            f"{ref['mean']:.2f} ± {ref['std']:.2f}"
+        )
+    t = result["training"]
+    print(
+        f"trained on {t['episodes']} episodes / {t['env_steps']} env steps; wall time {wall:.0f} s"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_main(main))

@@ -1,0 +1,200 @@
+"""Single-task ESPL trainer: Algorithm 1 as one jitted ``lax.scan`` per chunk, vmapped over seeds.
+
+One *iteration* (Algorithm 1, lines 3–18): compute τ and l_min from the schedules, sample one
+Bernoulli mask, collect ``steps_per_iteration`` env steps with a ~ tanh(N(SN(s), F(s))) (auto-reset
+between episodes), append them to the replay buffer, then take ``updates_per_iteration`` SAC steps.
+A *chunk* is ``lax.scan`` over iterations; it is compiled once and ``vmap``-ed over seeds. The host
+only runs between chunks (see :mod:`espl_jax.run`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import jax
+import jax.numpy as jnp
+
+import envs
+from espl_jax import replay, selector
+from espl_jax.config import Config, UserError
+from espl_jax.sac import SAC, Metrics, TrainState
+
+
+def make_env(name: str) -> envs.Environment:
+    """``envs.make`` with the unknown-name error turned into a user error."""
+    try:
+        return envs.make(name)
+    except ValueError as err:
+        raise UserError(str(err)) from None
+
+
+@dataclass(frozen=True)
+class Trainer:
+    """Static description of a run: config, environment and algorithm. Hashable (jit-static)."""
+
+    config: Config
+
+    @cached_property
+    def env(self) -> envs.Environment:
+        return make_env(self.config.env)
+
+    @cached_property
+    def sac(self) -> SAC:
+        return SAC(self.config, self.env.obs_dim, self.env.action_dim)
+
+    @property
+    def buffer_capacity(self) -> int:
+        cfg = self.config
+        wanted = min(cfg.buffer_size, cfg.total_env_steps)
+        return replay.capacity_for(wanted, cfg.steps_per_iteration)
+
+    # State ---------------------------------------------------------------------------------
+
+    def init(self, key: jax.Array) -> TrainState:
+        """A fresh TrainState for one seed. ``key`` is a raw uint32[2] key (checkpointable)."""
+        key, k_learner, k_reset = jax.random.split(key, 3)
+        params = self.env.default_params
+        obs, env_state = self.env.reset(k_reset, params)
+        zero_i = jnp.zeros((), jnp.int32)
+        return TrainState(
+            **self.sac.init_learner(k_learner),
+            buffer=replay.init(self.buffer_capacity, self.env.obs_dim, self.env.action_dim),
+            env_state=env_state,
+            obs=obs,
+            episode_return=jnp.zeros(()),
+            key=key,
+            iteration=zero_i,
+            env_steps=zero_i,
+            episodes=zero_i,
+        )
+
+    def init_seeds(self) -> TrainState:
+        """States for ``config.seeds`` seeds stacked on a leading axis."""
+        keys = jax.random.split(jax.random.PRNGKey(self.config.seed), self.config.seeds)
+        return jax.jit(jax.vmap(self.init))(keys)
+
+    # Collection -----------------------------------------------------------------------------
+
+    def collect(
+        self, state: TrainState, mask: list | None, key: jax.Array
+    ) -> tuple[TrainState, replay.Transition, Metrics]:
+        """K env steps with one fixed mask (Algorithm 1, lines 5–7); resets finished episodes."""
+        env, actor, params = self.env, self.sac.actor, self.env.default_params
+
+        def step(carry, k):
+            env_state, obs, ep_return = carry
+            k_act, k_env, k_reset = jax.random.split(k, 3)
+            action, _, _ = actor.sample(k_act, state.actor, mask, obs)
+            next_obs, next_state, reward, terminated, truncated, _ = env.step(
+                k_env, env_state, action, params
+            )
+            done = terminated | truncated
+            reset_obs, reset_state = env.reset(k_reset, params)
+            env_state = jax.tree.map(lambda r, n: jnp.where(done, r, n), reset_state, next_state)
+            ep_return = ep_return + reward
+            out = (
+                replay.Transition(obs, action, reward, next_obs, terminated),
+                done,
+                jnp.where(done, ep_return, 0.0),
+            )
+            carry = (
+                env_state,
+                jnp.where(done, reset_obs, next_obs),
+                jnp.where(done, 0.0, ep_return),
+            )
+            return carry, out
+
+        keys = jax.random.split(key, self.config.steps_per_iteration)
+        (env_state, obs, ep_return), (transitions, done, finished_returns) = jax.lax.scan(
+            step, (state.env_state, state.obs, state.episode_return), keys
+        )
+        finished = jnp.sum(done)
+        state = state.replace(
+            env_state=env_state,
+            obs=obs,
+            episode_return=ep_return,
+            env_steps=state.env_steps + self.config.steps_per_iteration,
+            episodes=state.episodes + finished,
+        )
+        metrics = {
+            "episodes_finished": finished,
+            "train_return": jnp.sum(finished_returns) / jnp.maximum(finished, 1),
+        }
+        return state, transitions, metrics
+
+    # One iteration and a chunk of them --------------------------------------------------------
+
+    def schedules(self, t: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """(τ, l_min) at iteration t (Algorithm 1, lines 3 and 8)."""
+        cfg = self.config
+        tau = selector.temperature(t, cfg.schedule_iterations, cfg.target_temperature)
+        l_min = selector.l_min_schedule(t, cfg.schedule_iterations, cfg.target_l0_ratio)
+        return tau, l_min
+
+    def iteration(self, state: TrainState) -> tuple[TrainState, Metrics]:
+        key, k_mask, k_collect, k_update = jax.random.split(state.key, 4)
+        tau, l_min = self.schedules(state.iteration)
+        mask = self.sac.actor.collect_mask(k_mask, state.actor)
+        state, transitions, c_metrics = self.collect(state, mask, k_collect)
+        state = state.replace(buffer=replay.insert(state.buffer, transitions), key=key)
+
+        def update(s, k):
+            return self.sac.update(s, k, tau, l_min)
+
+        keys = jax.random.split(k_update, self.config.updates_per_iteration)
+        state, u_metrics = jax.lax.scan(update, state, keys)
+        state = state.replace(iteration=state.iteration + 1)
+        metrics = {
+            **c_metrics,
+            **jax.tree.map(jnp.mean, u_metrics),
+            "tau": tau,
+            "l_min": l_min,
+            "l0_ratio": self.l0_ratio(state),
+            "env_steps": state.env_steps,
+            "episodes": state.episodes,
+            "iteration": state.iteration,
+        }
+        return state, metrics
+
+    def l0_ratio(self, state: TrainState) -> jax.Array:
+        """E||m||_0 / N: the fraction of paths the selector keeps in expectation (1 without one)."""
+        probs = state.actor["probs"]
+        if not probs:
+            return jnp.ones(())
+        return selector.expected_l0(probs) / selector.count(probs)
+
+    def chunk(self, state: TrainState, length: int) -> tuple[TrainState, Metrics]:
+        """``length`` iterations in one scan, for one seed."""
+        return jax.lax.scan(lambda s, _: self.iteration(s), state, None, length=length)
+
+    def compiled_chunk(self, length: int):
+        """jit(vmap(chunk)) over the leading seed axis; the state buffers are donated."""
+        return jax.jit(jax.vmap(lambda s: self.chunk(s, length)), donate_argnums=0)
+
+    # Deterministic evaluation in JAX ---------------------------------------------------------
+
+    def evaluate(self, actor_params: dict, key: jax.Array, episodes: int) -> jax.Array:
+        """Returns of ``episodes`` deterministic episodes (eval mask: the exported formula)."""
+        env, actor, params = self.env, self.sac.actor, self.env.default_params
+        mask = actor.eval_mask(actor_params)
+        k_reset, k_run = jax.random.split(key)
+        obs, env_state = jax.vmap(env.reset, (0, None))(jax.random.split(k_reset, episodes), params)
+
+        def step(carry, k):
+            obs, env_state, total, done = carry
+            action = jax.vmap(actor.deterministic, (None, None, 0))(actor_params, mask, obs)
+            keys = jax.random.split(k, episodes)
+            obs, env_state, reward, terminated, truncated, _ = jax.vmap(env.step, (0, 0, 0, None))(
+                keys, env_state, action, params
+            )
+            total = total + jnp.where(done, 0.0, reward)
+            return (obs, env_state, total, done | terminated | truncated), None
+
+        init = (obs, env_state, jnp.zeros(episodes), jnp.zeros(episodes, bool))
+        (_, _, total, _), _ = jax.lax.scan(step, init, jax.random.split(k_run, env.horizon))
+        return total
+
+    def compiled_evaluate(self, episodes: int):
+        """jit(vmap(evaluate)) over seeds: (actor params [S, ...], keys [S, 2]) -> [S, E]."""
+        return jax.jit(jax.vmap(lambda p, k: self.evaluate(p, k, episodes)))
