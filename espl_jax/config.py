@@ -47,6 +47,9 @@ class Config:
     # with ~10x fewer updates than the paper's needs a larger step for constants to reach
     # magnitudes like 17.17 (Table 2); the paper's value is 3e-4.
     actor_learning_rate: float = 3e-4
+    # The selector's probabilities keep the paper's step: with the larger actor step they would
+    # cross [0, 1] within one iteration and the sampled masks would thrash.
+    probs_learning_rate: float = 3e-4
     gamma: float = 0.99
     polyak: float = 0.005
     reward_scale: float = 1.0
@@ -137,7 +140,13 @@ def _validate(c: Config) -> None:
     for name in _UNIT_INTERVAL:
         if not 0.0 < getattr(c, name) <= 1.0:
             raise UserError(f"config: {name} must be in (0, 1], got {getattr(c, name)!r}")
-    for name in ("learning_rate", "actor_learning_rate", "grad_clip", "reward_scale"):
+    for name in (
+        "learning_rate",
+        "actor_learning_rate",
+        "probs_learning_rate",
+        "grad_clip",
+        "reward_scale",
+    ):
         if not getattr(c, name) > 0:
             raise UserError(f"config: {name} must be > 0, got {getattr(c, name)!r}")
     for name in ("penalty_scale", "select_scale"):

@@ -63,10 +63,18 @@ class SAC:
 
     @property
     def actor_tx(self) -> optax.GradientTransformation:
-        return optax.chain(
-            optax.clip_by_global_norm(self.config.grad_clip),
-            optax.adam(self.config.actor_learning_rate),
+        cfg = self.config
+        per_group = optax.multi_transform(
+            {
+                "probs": optax.adam(cfg.probs_learning_rate),
+                "rest": optax.adam(cfg.actor_learning_rate),
+            },
+            lambda params: {
+                k: jax.tree.map(lambda _, k=k: "probs" if k == "probs" else "rest", v)
+                for k, v in params.items()
+            },
         )
+        return optax.chain(optax.clip_by_global_norm(cfg.grad_clip), per_group)
 
     @property
     def critic_tx(self) -> optax.GradientTransformation:
