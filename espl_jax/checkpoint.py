@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +35,8 @@ def restore_latest(directory: str | Path, like: Any) -> tuple[int, Any]:
     directory = Path(directory)
     if not directory.is_dir():
         raise UserError(f"no checkpoints in {directory.parent}: {directory.name}/ is missing")
-    with manager(directory) as mngr:
+    # orbax logs its own ERROR line on unreadable metadata; the UserError below is the one message.
+    with _quiet_absl(), manager(directory) as mngr:
         step = mngr.latest_step()
         if step is None:
             raise UserError(f"no complete checkpoint in {directory}")
@@ -46,3 +49,15 @@ def restore_latest(directory: str | Path, like: Any) -> tuple[int, Any]:
                 f"{str(err).splitlines()[0][:200]}); it may be corrupt or from another config"
             ) from None
     return step, state
+
+
+@contextlib.contextmanager
+def _quiet_absl():
+    """Silence absl (orbax) log records below CRITICAL for the duration of the block."""
+    logger = logging.getLogger("absl")
+    level = logger.level
+    logger.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)

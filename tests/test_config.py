@@ -1,0 +1,155 @@
+"""Config: every shipped YAML resolves and round-trips; bad input is a UserError naming the key."""
+
+from dataclasses import fields
+
+import pytest
+import yaml
+
+from espl_jax import config as config_lib
+from espl_jax.config import Config, UserError
+
+CONFIG_FILES = sorted(config_lib.CONFIG_DIR.glob("*.yaml"))
+
+
+def test_there_are_shipped_configs():
+    assert CONFIG_FILES, f"no configs in {config_lib.CONFIG_DIR}"
+
+
+@pytest.mark.parametrize("path", CONFIG_FILES, ids=lambda p: p.stem)
+def test_shipped_config_resolves_and_round_trips(path, tmp_path):
+    env = path.stem
+    cfg = config_lib.resolve(env)
+    assert isinstance(cfg, Config)
+    assert cfg.env == env
+    # The file's values reach the Config (lists become tuples, ints become floats where needed).
+    raw = yaml.safe_load(path.read_text())
+    assert isinstance(raw, dict) and raw
+    for key, value in raw.items():
+        got = getattr(cfg, key)
+        expected = tuple(value) if isinstance(value, list) else value
+        assert got == expected, f"{path.name}: {key} is {got!r}, file says {value!r}"
+    # save() then load() gives the same frozen Config back.
+    out = tmp_path / "config.yaml"
+    config_lib.save(cfg, out)
+    assert config_lib.load(out) == cfg
+    assert set(yaml.safe_load(out.read_text())) == {f.name for f in fields(Config)}
+
+
+def test_defaults_round_trip(tmp_path):
+    out = tmp_path / "c.yaml"
+    config_lib.save(Config(), out)
+    assert config_lib.load(out) == Config()
+
+
+def test_precedence_defaults_file_overrides(tmp_path):
+    extra = tmp_path / "extra.yaml"
+    extra.write_text("iterations: 7\nbatch_size: 64\n")
+    cfg = config_lib.resolve("cartpole", extra, iterations=9, seeds=None)
+    assert cfg.iterations == 9  # command line beats --config
+    assert cfg.batch_size == 64  # --config beats configs/cartpole.yaml and defaults
+    assert cfg.seeds == 1  # None means unset
+
+
+def test_int_is_accepted_for_float_and_list_for_tuple():
+    cfg = config_lib.from_mapping({"learning_rate": 1, "critic_hidden": [8, 4]})
+    assert cfg.learning_rate == 1.0 and isinstance(cfg.learning_rate, float)
+    assert cfg.critic_hidden == (8, 4)
+
+
+def test_config_is_frozen():
+    with pytest.raises(AttributeError):
+        Config().gamma = 0.5  # type: ignore[misc]
+
+
+@pytest.mark.parametrize(
+    "key, value",
+    [
+        ("batch_size", "abc"),
+        ("batch_size", 3.5),
+        ("batch_size", True),
+        ("learning_rate", "fast"),
+        ("critic_hidden", [0]),
+        ("critic_hidden", []),
+        ("critic_hidden", 256),
+        ("std_hidden", ["a"]),
+        ("env", 3),
+        ("gamma", 1.5),
+        ("gamma", 0.0),
+        ("polyak", -0.1),
+        ("seeds", 0),
+        ("iterations", -1),
+        ("learning_rate", 0.0),
+        ("penalty_scale", -1.0),
+        ("reference_eval_episodes", -1),
+        ("actor", "cnn"),
+        ("layout", "tree"),
+        ("selector", "gumbel"),
+    ],
+)
+def test_bad_value_names_the_key(key, value):
+    with pytest.raises(UserError, match=rf"\b{key}\b"):
+        config_lib.from_mapping({key: value})
+
+
+def test_bad_choice_lists_the_choices():
+    with pytest.raises(UserError, match="actor must be one of symbolic, mlp, got 'cnn'"):
+        config_lib.from_mapping({"actor": "cnn"})
+
+
+def test_buffer_smaller_than_one_iteration():
+    with pytest.raises(UserError, match="buffer_size"):
+        config_lib.from_mapping({"buffer_size": 10, "steps_per_iteration": 100})
+
+
+def test_unknown_key_lists_known_keys():
+    with pytest.raises(UserError) as err:
+        config_lib.from_mapping({"learning_rat": 1e-3})
+    message = str(err.value)
+    assert "learning_rat" in message
+    assert "known keys" in message
+    for f in fields(Config):
+        assert f.name in message
+
+
+def test_missing_config_file(tmp_path):
+    missing = tmp_path / "nope.yaml"
+    with pytest.raises(UserError, match="not found") as err:
+        config_lib.resolve("cartpole", missing)
+    assert str(missing) in str(err.value)
+
+
+def test_malformed_yaml(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("iterations: [1, 2\nseeds: 3\n")
+    with pytest.raises(UserError, match="cannot read config file") as err:
+        config_lib.load(bad)
+    assert str(bad) in str(err.value)
+    assert "(line 2, column 6)" in str(err.value)
+    assert "\n" not in str(err.value)  # the CLI prints it as one line
+
+
+def test_binary_config_file(tmp_path):
+    binary = tmp_path / "binary.yaml"
+    binary.write_bytes(b"\xff\xfe\x00garbage")
+    with pytest.raises(UserError, match="cannot read config file"):
+        config_lib.load(binary)
+
+
+def test_yaml_list_is_not_a_mapping(tmp_path):
+    listy = tmp_path / "list.yaml"
+    listy.write_text("- iterations\n- 3\n")
+    with pytest.raises(UserError, match="must hold a mapping"):
+        config_lib.resolve("cartpole", listy)
+
+
+def test_bad_value_in_file_names_the_key(tmp_path):
+    f = tmp_path / "c.yaml"
+    f.write_text("batch_size: abc\n")
+    with pytest.raises(UserError, match="batch_size must be an integer"):
+        config_lib.resolve("cartpole", f)
+
+
+def test_empty_yaml_is_an_empty_mapping(tmp_path):
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("")
+    assert config_lib.resolve("cartpole", empty) == config_lib.resolve("cartpole")

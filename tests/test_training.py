@@ -1,0 +1,462 @@
+"""Training runs end to end (tiny budgets), resume, divergence, and SAC / replay unit checks.
+
+The tiny config keeps compile and run time small. It still needs ~1000 updates per iteration:
+the path selector moves p by about the learning rate per update, and an unpruned symbolic network
+has a formula far too large for sympy to print. With it, the formulas keep ~10–30 paths.
+Compiled executables go to a persistent cache shared by the runs of this session, so runs with
+the same config compile once.
+"""
+
+import copy
+import json
+import math
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import yaml
+from jax.experimental.compilation_cache import compilation_cache
+
+import envs
+from espl_jax import config as config_lib
+from espl_jax import evaluation, replay, run
+from espl_jax.networks import tanh_gaussian_log_prob
+from espl_jax.sac import SAC, TrainState
+from espl_jax.trainer import Trainer
+
+REPO = Path(__file__).resolve().parent.parent
+
+TINY = {
+    "env": "cartpole",
+    "seeds": 2,
+    "iterations": 4,
+    "steps_per_iteration": 64,
+    "updates_per_iteration": 1000,
+    "chunk_iterations": 2,
+    "batch_size": 8,
+    "critic_hidden": [32, 32],
+    "std_hidden": [16],
+    "schedule_iterations": 3,
+    "progress_eval_episodes": 2,
+    "eval_episodes": 2,  # = progress_eval_episodes: one compiled evaluation serves both
+    "reference_eval_episodes": 2,
+    "buffer_size": 1024,
+}
+# The neural baseline: no symbolic network, so a handful of updates is enough.
+TINY_MLP = {
+    **TINY,
+    "actor": "mlp",
+    "seeds": 1,
+    "iterations": 2,
+    "updates_per_iteration": 4,
+    "mlp_actor_hidden": [16],
+}
+METRIC_KEYS = {
+    "iteration", "seed", "env_steps", "train_return", "l0_ratio", "penalty", "tau", "critic_loss",
+}  # fmt: skip
+
+
+def tiny(**overrides) -> config_lib.Config:
+    return config_lib.from_mapping({**TINY, **overrides})
+
+
+@pytest.fixture(scope="module", autouse=True)
+def jax_cache(tmp_path_factory):
+    """Persistent compilation cache for this session; returns the env vars for subprocesses."""
+    path = tmp_path_factory.getbasetemp() / "jax_cache"
+    path.mkdir(exist_ok=True)
+    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
+    old = {name: getattr(jax.config, name) for name in names}
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    compilation_cache.reset_cache()
+    yield {
+        "JAX_COMPILATION_CACHE_DIR": str(path),
+        "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
+    }
+    for name, value in old.items():
+        jax.config.update(name, value)
+    compilation_cache.reset_cache()
+
+
+def load_params(run_dir):
+    _, state, step = run.load_run(run_dir)
+    return step, state
+
+
+def assert_trees_equal(a, b):
+    leaves_a, tree_a = jax.tree.flatten(a)
+    leaves_b, tree_b = jax.tree.flatten(b)
+    assert tree_a == tree_b
+    for x, y in zip(leaves_a, leaves_b, strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+# A full run, shared ---------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def full_run(tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("full") / "run"
+    result = run.train(tiny(), run_dir, show_progress=False)
+    return run_dir, result
+
+
+@pytest.fixture(scope="module")
+def stopped_run(tmp_path_factory):
+    """The same config stopped after 2 of 4 iterations (as if interrupted); copy before use."""
+    run_dir = tmp_path_factory.mktemp("stopped") / "run"
+    assert run.train(tiny(), run_dir, show_progress=False, stop_after=2) == {}
+    return run_dir
+
+
+def test_full_run_writes_every_artifact(full_run):
+    run_dir, result = full_run
+    cfg = tiny()
+    assert config_lib.load(run_dir / "config.yaml") == cfg
+
+    rows = run.read_metrics(run_dir / run.METRICS_FILE)
+    assert len(rows) == cfg.iterations * cfg.seeds
+    assert {(r["iteration"], r["seed"]) for r in rows} == {
+        (i, s) for i in range(1, cfg.iterations + 1) for s in range(cfg.seeds)
+    }
+    for r in rows:
+        assert set(r) >= METRIC_KEYS, set(r)
+        assert r["env_steps"] == r["iteration"] * cfg.steps_per_iteration
+        assert 0.0 <= r["l0_ratio"] <= 1.0
+        chunk_end = r["iteration"] % cfg.chunk_iterations == 0
+        assert ("eval_return" in r) == chunk_end
+        assert all(math.isfinite(r[k]) for k in ("critic_loss", "penalty", "tau"))
+
+    png = (run_dir / run.CURVE_FILE).read_bytes()
+    assert png.startswith(b"\x89PNG\r\n\x1a\n") and len(png) > 1000
+
+    steps = sorted(int(p.name) for p in (run_dir / run.CHECKPOINT_DIR).iterdir())
+    assert steps[-1] == cfg.iterations
+
+    expression = (run_dir / run.EXPRESSION_FILE).read_text()
+    assert expression.startswith("a0 = ") and "x" in expression
+
+    record = json.loads((run_dir / run.EVAL_FILE).read_text())
+    assert record == result
+    assert record["env"] == "cartpole" and record["actor"] == "symbolic"
+    best = record["best_seed"]
+    assert best in range(cfg.seeds)
+    assert record["jax_eval"]["episodes"] == cfg.eval_episodes
+    assert {"mean", "std", "min", "max"} <= set(record["jax_eval"])
+    assert record["training"]["env_steps"] == cfg.total_env_steps
+    assert record["training"]["iterations"] == cfg.iterations
+    assert record["training"]["episodes"] > 0
+    assert [e["seed"] for e in record["per_seed"]] == list(range(cfg.seeds))
+    assert record["jax_eval"] == record["per_seed"][best]["jax_eval"]
+    assert record["formula"] == record["per_seed"][best]["formula"] == expression.strip()
+    assert record["length"] > 0
+    assert record["reference_eval"]["episodes"] == cfg.reference_eval_episodes
+    for summary in (record["jax_eval"], record["reference_eval"]):
+        assert all(math.isfinite(summary[k]) for k in ("mean", "std", "min", "max"))
+        assert summary["min"] >= 1.0  # cartpole pays 1 per step
+
+
+def test_seeds_are_independent(full_run):
+    run_dir, result = full_run
+    _, state = load_params(run_dir)
+    assert len(result["per_seed"]) == 2
+    rows = run.read_metrics(run_dir / run.METRICS_FILE)
+    assert {r["seed"] for r in rows} == {0, 1}
+    for leaf in jax.tree.leaves((state.actor, state.critic)):
+        assert leaf.shape[0] == 2
+    assert not np.array_equal(state.actor["mean"]["w"][-1][0], state.actor["mean"]["w"][-1][1])
+    assert not np.array_equal(
+        jax.tree.leaves(state.critic)[0][0], jax.tree.leaves(state.critic)[0][1]
+    )
+
+
+def test_policy_py_is_the_network_under_the_eval_mask(full_run):
+    run_dir, result = full_run
+    trainer, state, step = run.load_run(run_dir)
+    assert step == trainer.config.iterations
+    np.testing.assert_array_equal(state.iteration, [trainer.config.iterations] * 2)
+    best = result["best_seed"]
+    actor_params = jax.tree.map(lambda x: np.asarray(x[best]), state.actor)
+    actor, env = trainer.sac.actor, trainer.env
+    mask = actor.eval_mask(actor_params)
+
+    rng = np.random.default_rng(0)
+    obs = rng.normal(scale=[0.5, 0.5, 0.1, 0.5], size=(16, 4)).astype(np.float32)
+    tanh = jax.jit(jax.vmap(actor.deterministic, (None, None, 0)))(actor_params, mask, obs)
+    expected = env.action_low + (np.asarray(tanh, np.float64) + 1.0) / 2 * (
+        env.action_high - env.action_low
+    )
+
+    policy = evaluation.load_policy(run_dir / run.POLICY_FILE)
+    got = np.array([policy.act(o) for o in obs])
+    assert got.shape == (16, 1)
+    assert np.all(got >= env.action_low) and np.all(got <= env.action_high)
+    np.testing.assert_allclose(got, expected, atol=1e-5)
+    assert len(np.unique(np.round(got, 4))) > 1, "the formula should depend on the observation"
+
+
+def test_export_cli_writes_the_same_policy(full_run, tmp_path, jax_cache):
+    run_dir, _ = full_run
+    out = tmp_path / "policy.py"
+    cmd = [sys.executable, "-m", "espl_jax.export", str(run_dir), "--format", "python"]
+    proc = subprocess.run(
+        [*cmd, "--output", str(out)],
+        cwd=REPO, env={**os.environ, **jax_cache}, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert out.read_text() == (run_dir / run.POLICY_FILE).read_text()
+
+
+# Resume ---------------------------------------------------------------------------------------
+
+
+def test_resume_is_bitwise_deterministic(full_run, stopped_run, tmp_path):
+    run_dir = tmp_path / "run"
+    shutil.copytree(stopped_run, run_dir)
+    assert load_params(run_dir)[0] == 2
+    result = run.train(tiny(), run_dir, resume=True, show_progress=False)
+    records = []
+
+    full_dir, full_result = full_run
+    step_a, state_a = load_params(full_dir)
+    step_b, state_b = load_params(run_dir)
+    assert step_a == step_b == 4
+    for name in ("actor", "critic", "log_alpha"):
+        assert_trees_equal(getattr(state_a, name), getattr(state_b, name))
+    assert_trees_equal(state_a, state_b)  # optimizers, targets, buffer, env state and key too
+    # The resumed run's records are those of the uninterrupted one.
+    assert run.read_metrics(run_dir / run.METRICS_FILE) == run.read_metrics(
+        full_dir / run.METRICS_FILE
+    )
+    for record in (result, full_result):
+        record = copy.deepcopy(record)
+        del record["training"]["wall_seconds_training"]
+        records.append(record)
+    assert records[0] == records[1]
+    assert (run_dir / run.EXPRESSION_FILE).read_text() == (
+        full_dir / run.EXPRESSION_FILE
+    ).read_text()
+
+
+@pytest.mark.slow  # recompiles the chunk for the new reward scale
+def test_non_finite_loss_stops_and_keeps_the_last_good_checkpoint(stopped_run, tmp_path):
+    run_dir = tmp_path / "run"
+    shutil.copytree(stopped_run, run_dir)
+    path = run_dir / "config.yaml"
+    values = yaml.safe_load(path.read_text())
+    values["reward_scale"] = 1.0e38
+    path.write_text(yaml.safe_dump(values))
+    cfg = config_lib.load(path)
+    assert cfg.reward_scale == 1e38  # Q targets of ~1e38 square to inf in float32
+    with pytest.raises(run.TrainingDiverged) as err:
+        run.train(cfg, run_dir, resume=True, show_progress=False)
+    message = str(err.value)
+    assert "non-finite at iteration 3" in message
+    assert "last good checkpoint (iteration 2) is kept" in message
+    assert isinstance(err.value, config_lib.UserError)  # the CLI prints it without a traceback
+    _, state, step = run.load_run(run_dir)
+    assert step == 2
+    np.testing.assert_array_equal(state.iteration, [2, 2])
+    assert all(np.isfinite(leaf).all() for leaf in jax.tree.leaves(state.critic))
+    assert max(r["iteration"] for r in run.read_metrics(run_dir / run.METRICS_FILE)) == 2
+    assert not (run_dir / run.EVAL_FILE).exists()
+
+
+@pytest.mark.slow
+def test_resume_after_kill_9(tmp_path, jax_cache):
+    """A real SIGKILL mid-run, then ``--resume``: the same final state as an uninterrupted run."""
+    cfg = tiny(iterations=8, chunk_iterations=1)
+    config_file = tmp_path / "tiny.yaml"
+    config_lib.save(cfg, config_file)
+    killed = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "espl_jax.train", "--no-progress"]
+    env = {**os.environ, **jax_cache}
+    proc = subprocess.Popen(
+        [*cmd, "--config", str(config_file), "--out", str(killed)],
+        cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 900
+        while not _completed_steps(killed / run.CHECKPOINT_DIR) & {2, 3, 4, 5, 6}:
+            assert proc.poll() is None, proc.stderr.read().decode()
+            assert time.monotonic() < deadline, "no checkpoint >= 2 in time"
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+    assert not (killed / run.EVAL_FILE).exists()
+
+    resumed = subprocess.run(
+        [*cmd, "--resume", str(killed)], cwd=REPO, env=env, capture_output=True, text=True,
+        timeout=1200,
+    )  # fmt: skip
+    assert resumed.returncode == 0, resumed.stderr
+    reference = tmp_path / "uninterrupted"
+    run.train(cfg, reference, show_progress=False)
+
+    step_a, state_a = load_params(reference)
+    step_b, state_b = load_params(killed)
+    assert step_a == step_b == 8
+    for name in ("actor", "critic", "log_alpha"):
+        assert_trees_equal(getattr(state_a, name), getattr(state_b, name))
+    assert run.read_metrics(killed / run.METRICS_FILE) == run.read_metrics(
+        reference / run.METRICS_FILE
+    )
+
+
+def _completed_steps(directory: Path) -> set[int]:
+    if not directory.is_dir():
+        return set()
+    return {
+        int(p.name)
+        for p in directory.iterdir()
+        if p.name.isdigit() and (p / "commit_success.txt").is_file()
+    }
+
+
+# The neural baseline -----------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_mlp_actor_run_has_no_formula(tmp_path):
+    cfg = config_lib.from_mapping(TINY_MLP)
+    result = run.train(cfg, tmp_path, show_progress=False)
+    record = json.loads((tmp_path / run.EVAL_FILE).read_text())
+    assert record == result
+    assert record["actor"] == "mlp"
+    assert "formula" not in record and "reference_eval" not in record
+    assert all("formula" not in e for e in record["per_seed"])
+    assert math.isfinite(record["jax_eval"]["mean"])
+    assert not (tmp_path / run.POLICY_FILE).exists()
+    assert not (tmp_path / run.EXPRESSION_FILE).exists()
+    rows = run.read_metrics(tmp_path / run.METRICS_FILE)
+    assert len(rows) == cfg.iterations and all(r["l0_ratio"] == 1.0 for r in rows)
+
+
+# SAC, replay and the policy distribution: unit checks without training -----------------------
+
+
+def _mlp_sac(**overrides):
+    cfg = config_lib.from_mapping(
+        {"actor": "mlp", "critic_hidden": [16, 16], "std_hidden": [8], "mlp_actor_hidden": [8],
+         **overrides}
+    )  # fmt: skip
+    return SAC(cfg, obs_dim=4, action_dim=1)
+
+
+def test_critic_target_bootstraps_unless_terminated():
+    gamma, scale = 0.9, 2.0
+    sac = _mlp_sac(gamma=gamma, reward_scale=scale)
+    learner = sac.init_learner(jax.random.PRNGKey(0))
+    # A target critic that differs from the critic, and α ≠ 1, so every term of y matters.
+    learner["target_critic"] = sac.critic.init(jax.random.PRNGKey(7), jnp.zeros(4), jnp.zeros(1))
+    learner["log_alpha"] = jnp.asarray(-0.7)
+    state = TrainState(
+        **learner, buffer=None, env_state=None, obs=None, episode_return=None, key=None,
+        iteration=None, env_steps=None, episodes=None,
+    )  # fmt: skip
+    rng = np.random.default_rng(0)
+    obs, next_obs = (jnp.asarray(rng.normal(size=(1, 4)), jnp.float32) for _ in range(2))
+    action, reward = jnp.asarray([[0.3]]), jnp.asarray([0.7])
+    key = jax.random.PRNGKey(3)
+
+    @jax.jit
+    def loss(terminated):
+        batch = replay.Transition(obs, action, reward, next_obs, terminated)
+        return sac.critic_loss(state.critic, state, batch, key)[0]
+
+    bootstrapped = float(loss(jnp.asarray([False])))
+    terminal = float(loss(jnp.asarray([True])))
+
+    # The soft value of s' from the same key: min of the target Qs minus α log π.
+    _, k_act = jax.random.split(key)
+    a2, log_prob, _ = sac.actor.sample(
+        jax.random.split(k_act, 1)[0], state.actor, None, next_obs[0]
+    )
+    soft_next = float(
+        sac.critic.apply(state.target_critic, next_obs[0], a2).min() - np.exp(-0.7) * log_prob
+    )
+    q = np.asarray(sac.critic.apply(state.critic, obs[0], action[0]), np.float64)
+    y_terminal = scale * 0.7
+    np.testing.assert_allclose(terminal, np.sum((q - y_terminal) ** 2), rtol=1e-5)
+    np.testing.assert_allclose(
+        bootstrapped, np.sum((q - y_terminal - gamma * soft_next) ** 2), rtol=1e-5
+    )
+    assert abs(gamma * soft_next) > 1e-3  # the two cases really differ
+
+
+def test_truncation_is_stored_as_not_terminated():
+    """Time-limit ends reset the env but are not ``terminated``: the critic bootstraps there."""
+    cfg = config_lib.from_mapping(
+        {**TINY_MLP, "steps_per_iteration": 12, "buffer_size": 12, "iterations": 1}
+    )
+    trainer = Trainer(cfg)
+    trainer.__dict__["env"] = envs.make("cartpole", horizon=5)  # cached_property: a short limit
+    state = jax.jit(trainer.init)(jax.random.PRNGKey(0))
+    _, transitions, metrics = jax.jit(lambda s, k: trainer.collect(s, None, k))(
+        state, jax.random.PRNGKey(1)
+    )
+    assert int(metrics["episodes_finished"]) == 2  # truncated after steps 5 and 10
+    assert not np.asarray(transitions.terminated).any()
+    obs, next_obs = np.asarray(transitions.obs), np.asarray(transitions.next_obs)
+    continues = np.all(next_obs[:-1] == obs[1:], axis=1)
+    # next_obs at a truncation is the true next state, not the reset observation.
+    np.testing.assert_array_equal(np.flatnonzero(~continues), [4, 9])
+
+
+def test_replay_insert_wraps_and_size_saturates():
+    buffer = replay.init(capacity=6, obs_dim=2, action_dim=1)
+
+    def batch(start):
+        r = jnp.arange(start, start + 2, dtype=jnp.float32)
+        return replay.Transition(
+            jnp.stack([r, r], 1), r[:, None], r, jnp.stack([r, r], 1) + 1, r > 100
+        )
+
+    insert = jax.jit(replay.insert)
+    sizes, positions = [], []
+    for k in range(4):
+        buffer = insert(buffer, batch(10 * k))
+        sizes.append(int(buffer.size))
+        positions.append(int(buffer.position))
+    assert sizes == [2, 4, 6, 6]
+    assert positions == [2, 4, 0, 2]
+    # The fourth batch overwrote the oldest entries (indices 0 and 1), the rest is kept.
+    np.testing.assert_array_equal(buffer.data.reward, [30, 31, 10, 11, 20, 21])
+    np.testing.assert_array_equal(buffer.data.obs[:, 0], buffer.data.reward)
+
+    sample = jax.jit(replay.sample, static_argnums=2)
+    partial = insert(replay.init(6, 2, 1), batch(50))
+    drawn = sample(partial, jax.random.PRNGKey(0), 64)
+    assert set(np.asarray(drawn.reward).tolist()) == {50.0, 51.0}  # only valid entries
+    full = sample(buffer, jax.random.PRNGKey(0), 256)
+    assert set(np.asarray(full.reward).tolist()) == {30, 31, 10, 11, 20, 21}
+    np.testing.assert_array_equal(full.next_obs[:, 0], full.reward + 1)  # rows stay aligned
+    assert replay.capacity_for(10, 4) == 12 and replay.capacity_for(8, 4) == 8
+
+
+def test_tanh_gaussian_log_prob_matches_numpy():
+    rng = np.random.default_rng(0)
+    u = rng.uniform(-3, 3, size=(50, 3))
+    mean = rng.normal(size=(50, 3))
+    log_std = rng.uniform(-2, 1, size=(50, 3))
+    std = np.exp(log_std)
+    gauss = -0.5 * ((u - mean) / std) ** 2 - np.log(std) - 0.5 * np.log(2 * np.pi)
+    expected = np.sum(gauss - np.log(1 - np.tanh(u) ** 2), axis=-1)
+    got = jax.jit(tanh_gaussian_log_prob)(
+        *(jnp.asarray(a, jnp.float32) for a in (u, mean, log_std))
+    )
+    np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-4)
