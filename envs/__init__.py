@@ -26,10 +26,29 @@ from envs.classic import CartPole, MountainCar, Pendulum
 
 EnvFactory = Callable[..., Environment]
 
+
+def _mjx_factory(name: str) -> EnvFactory:
+    """A factory that imports ``envs.mjx`` (and with it MuJoCo/MJX) only when called."""
+
+    def factory(**kwargs) -> Environment:
+        from envs.mjx import MJX_ENVS
+
+        return MJX_ENVS[name](**kwargs)
+
+    factory.__name__ = f"make_{name}"
+    return factory
+
+
 _REGISTRY: dict[str, EnvFactory] = {
     "cartpole": CartPole,
     "mountaincar": MountainCar,
     "pendulum": Pendulum,
+    # MJX envs (envs/mjx.py): gymnasium v5 MuJoCo tasks and PyBullet's swing-up
+    "halfcheetah": _mjx_factory("halfcheetah"),
+    "hopper": _mjx_factory("hopper"),
+    "inverted_double_pendulum": _mjx_factory("inverted_double_pendulum"),
+    "inverted_pendulum_swingup": _mjx_factory("inverted_pendulum_swingup"),
+    "walker2d": _mjx_factory("walker2d"),
 }
 
 KNOWN_ENVS: tuple[str, ...] = tuple(sorted(_REGISTRY))

@@ -1,0 +1,139 @@
+"""Env steps per second of the MJX envs under a jitted ``lax.scan`` of random actions.
+
+For each env and batch size, one jitted function runs ``--steps`` steps of ``batch`` vmapped envs
+with uniform random actions in [-1, 1], resetting each env when it terminates or truncates
+(``env.reset`` is evaluated every step and selected with ``jnp.where``, so its cost is included).
+Compile time (``jit(...).lower(...).compile()``) is measured separately from run time; the run
+is timed after one warm-up call, best of ``--repeats``. Prints a markdown table::
+
+    python benchmarks/env_throughput.py --envs inverted_double_pendulum,hopper --batch 1,16,256
+
+Not part of the test suite (CI never runs ``benchmarks/``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import jax
+import jax.numpy as jnp
+
+import envs
+
+DEFAULT_ENVS = (
+    "inverted_double_pendulum",
+    "inverted_pendulum_swingup",
+    "hopper",
+    "walker2d",
+    "halfcheetah",
+)
+
+
+def make_run(env, steps: int, per_env_params: bool):
+    """Builds ``run(key, params, obs, state) -> (obs, state, total_reward, n_done)``.
+
+    Args:
+        env: an ``envs`` environment.
+        steps: scan length.
+        per_env_params: if true, ``params`` carries a leading batch axis (one physics per env,
+            as in meta-RL); otherwise all envs share one params.
+
+    Returns:
+        The (unjitted) batched run function; leaves of ``obs``/``state`` have a leading (B,) axis.
+    """
+
+    def step_one(key, params, obs, state):
+        key_action, key_step, key_reset = jax.random.split(key, 3)
+        action = jax.random.uniform(key_action, (env.action_dim,), minval=-1.0, maxval=1.0)
+        obs, state, reward, terminated, truncated, _ = env.step(key_step, state, action, params)
+        done = jnp.logical_or(terminated, truncated)
+        obs_reset, state_reset = env.reset(key_reset, params)
+        obs, state = jax.tree.map(
+            lambda r, s: jnp.where(done, r, s), (obs_reset, state_reset), (obs, state)
+        )
+        return obs, state, reward, done
+
+    batched = jax.vmap(step_one, in_axes=(0, 0 if per_env_params else None, 0, 0))
+
+    def run(key, params, obs, state):
+        batch = jax.tree.leaves(obs)[0].shape[0]
+
+        def body(carry, key_t):
+            obs, state, total, n_done = carry
+            obs, state, reward, done = batched(jax.random.split(key_t, batch), params, obs, state)
+            return (obs, state, total + reward.sum(), n_done + done.sum()), None
+
+        init = (obs, state, jnp.zeros(()), jnp.zeros((), jnp.int32))
+        (obs, state, total, n_done), _ = jax.lax.scan(body, init, jax.random.split(key, steps))
+        return obs, state, total, n_done
+
+    return run
+
+
+def benchmark(name: str, batch: int, steps: int, repeats: int, per_env_params: bool) -> dict:
+    """Compiles and times one (env, batch) configuration.
+
+    Returns:
+        dict with ``compile_s``, ``run_s`` (best of ``repeats``), ``steps_per_s`` (env steps, i.e.
+        ``batch * steps / run_s``) and ``episodes`` (resets during the timed run).
+    """
+    env = envs.make(name)
+    key = jax.random.key(0)
+    params = env.default_params
+    if per_env_params:
+        params = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), params)
+    reset = jax.vmap(env.reset, in_axes=(0, 0 if per_env_params else None))
+    obs, state = jax.jit(reset)(jax.random.split(key, batch), params)
+    run = jax.jit(make_run(env, steps, per_env_params))
+    start = time.perf_counter()
+    compiled = run.lower(key, params, obs, state).compile()
+    compile_s = time.perf_counter() - start
+    out = jax.block_until_ready(compiled(key, params, obs, state))  # warm-up
+    best = float("inf")
+    for i in range(repeats):
+        start = time.perf_counter()
+        out = jax.block_until_ready(compiled(jax.random.key(i + 1), params, obs, state))
+        best = min(best, time.perf_counter() - start)
+    return dict(
+        compile_s=compile_s,
+        run_s=best,
+        steps_per_s=batch * steps / best,
+        episodes=int(out[3]),
+    )
+
+
+def _fmt_rate(x: float) -> str:
+    return f"{x / 1e3:.1f}k" if x >= 1e3 else f"{x:.0f}"
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--envs", default=",".join(DEFAULT_ENVS), help="comma-separated names")
+    parser.add_argument("--batch", default="1,16,256", help="comma-separated batch sizes")
+    parser.add_argument("--steps", type=int, default=1000, help="scan length per call")
+    parser.add_argument("--repeats", type=int, default=1, help="timed calls (best is kept)")
+    parser.add_argument(
+        "--per-env-params",
+        action="store_true",
+        help="vmap over a batch of params (one mjx.Model per env, as in meta-RL)",
+    )
+    args = parser.parse_args(argv)
+    names = [n.strip() for n in args.envs.split(",") if n.strip()]
+    batches = [int(b) for b in args.batch.split(",")]
+    print(f"jax {jax.__version__}, backend {jax.default_backend()}, {args.steps} steps per call")
+    print()
+    print("| env | batch | compile (s) | run (s) | env steps/s | resets |")
+    print("|---|---:|---:|---:|---:|---:|")
+    for name in names:
+        for batch in batches:
+            r = benchmark(name, batch, args.steps, args.repeats, args.per_env_params)
+            print(
+                f"| {name} | {batch} | {r['compile_s']:.1f} | {r['run_s']:.2f} "
+                f"| {_fmt_rate(r['steps_per_s'])} | {r['episodes']} |",
+                flush=True,
+            )
+
+
+if __name__ == "__main__":
+    main()
