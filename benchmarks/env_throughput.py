@@ -1,8 +1,10 @@
 """Env steps per second of the MJX envs under a jitted ``lax.scan`` of random actions.
 
 For each env and batch size, one jitted function runs ``--steps`` steps of ``batch`` vmapped envs
-with uniform random actions in [-1, 1], resetting each env when it terminates or truncates
-(``env.reset`` is evaluated every step and selected with ``jnp.where``, so its cost is included).
+(batch 1: a single env, not vmapped) with uniform random actions in [-1, 1], resetting each env
+when it terminates or truncates (``env.reset`` is evaluated every step and selected with
+``jnp.where``, so its cost is included). On CPU, ``vmap`` itself costs MJX several times its
+single-env speed at batch 1 (batched solver loops and factorizations), hence the unbatched path.
 Compile time (``jit(...).lower(...).compile()``) is measured separately from run time; the run
 is timed after one warm-up call, best of ``--repeats``. Prints a markdown table::
 
@@ -30,7 +32,7 @@ DEFAULT_ENVS = (
 )
 
 
-def make_run(env, steps: int, per_env_params: bool):
+def make_run(env, steps: int, per_env_params: bool, batched: bool = True):
     """Builds ``run(key, params, obs, state) -> (obs, state, total_reward, n_done)``.
 
     Args:
@@ -38,9 +40,11 @@ def make_run(env, steps: int, per_env_params: bool):
         steps: scan length.
         per_env_params: if true, ``params`` carries a leading batch axis (one physics per env,
             as in meta-RL); otherwise all envs share one params.
+        batched: vmap over envs (leaves of ``obs``/``state`` have a leading (B,) axis); if false,
+            a single env.
 
     Returns:
-        The (unjitted) batched run function; leaves of ``obs``/``state`` have a leading (B,) axis.
+        The (unjitted) run function.
     """
 
     def step_one(key, params, obs, state):
@@ -54,14 +58,19 @@ def make_run(env, steps: int, per_env_params: bool):
         )
         return obs, state, reward, done
 
-    batched = jax.vmap(step_one, in_axes=(0, 0 if per_env_params else None, 0, 0))
+    vmapped = jax.vmap(step_one, in_axes=(0, 0 if per_env_params else None, 0, 0))
 
     def run(key, params, obs, state):
-        batch = jax.tree.leaves(obs)[0].shape[0]
+        batch = jax.tree.leaves(obs)[0].shape[0] if batched else 1
 
         def body(carry, key_t):
             obs, state, total, n_done = carry
-            obs, state, reward, done = batched(jax.random.split(key_t, batch), params, obs, state)
+            if batched:
+                obs, state, reward, done = vmapped(
+                    jax.random.split(key_t, batch), params, obs, state
+                )
+            else:
+                obs, state, reward, done = step_one(key_t, params, obs, state)
             return (obs, state, total + reward.sum(), n_done + done.sum()), None
 
         init = (obs, state, jnp.zeros(()), jnp.zeros((), jnp.int32))
@@ -81,11 +90,15 @@ def benchmark(name: str, batch: int, steps: int, repeats: int, per_env_params: b
     env = envs.make(name)
     key = jax.random.key(0)
     params = env.default_params
-    if per_env_params:
-        params = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), params)
-    reset = jax.vmap(env.reset, in_axes=(0, 0 if per_env_params else None))
-    obs, state = jax.jit(reset)(jax.random.split(key, batch), params)
-    run = jax.jit(make_run(env, steps, per_env_params))
+    batched = batch > 1
+    if batched:
+        if per_env_params:
+            params = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), params)
+        reset = jax.vmap(env.reset, in_axes=(0, 0 if per_env_params else None))
+        obs, state = jax.jit(reset)(jax.random.split(key, batch), params)
+    else:
+        obs, state = jax.jit(env.reset)(key, params)
+    run = jax.jit(make_run(env, steps, per_env_params and batched, batched))
     start = time.perf_counter()
     compiled = run.lower(key, params, obs, state).compile()
     compile_s = time.perf_counter() - start
@@ -116,7 +129,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--per-env-params",
         action="store_true",
-        help="vmap over a batch of params (one mjx.Model per env, as in meta-RL)",
+        help="vmap over a batch of params (one mjx.Model per env, as in meta-RL); batch > 1",
     )
     args = parser.parse_args(argv)
     names = [n.strip() for n in args.envs.split(",") if n.strip()]

@@ -360,9 +360,9 @@ class Hopper(_Locomotion):
 
     frame_skip 4 (dt 0.008 s, RK4 at 2 ms); 3 torques in [-1, 1] (gear 200); obs (11,)
     ``[qpos[1:6], clip(qvel, -10, 10)]``; reward ``x_velocity + 1 * healthy - 1e-3 ||a||^2``;
-    terminates when unhealthy: ``not (0.7 < z``, ``-0.2 < torso angle < 0.2``, every element of
-    ``[qpos[2:], qvel]`` (unclipped) in ``(-100, 100))``. Reset ``qpos0 + U(+-5e-3)``,
-    ``qvel ~ U(+-5e-3)``.
+    terminates when unhealthy, i.e. unless ``0.7 < z``, ``-0.2 < torso angle < 0.2`` and every
+    element of ``[qpos[2:], qvel]`` (unclipped) lies in ``(-100, 100)``. Reset
+    ``qpos0 + U(+-5e-3)``, ``qvel ~ U(+-5e-3)``.
     """
 
     env_name = "hopper"
@@ -382,7 +382,7 @@ class Walker2d(_Locomotion):
 
     frame_skip 4 (dt 0.008 s, RK4 at 2 ms); 6 torques in [-1, 1] (gear 100); obs (17,)
     ``[qpos[1:9], clip(qvel, -10, 10)]``; reward ``x_velocity + 1 * healthy - 1e-3 ||a||^2``;
-    terminates when unhealthy: ``not (0.8 < z < 2.0 and -1 < torso angle < 1)``. Reset
+    terminates when unhealthy, i.e. unless ``0.8 < z < 2.0`` and ``-1 < torso angle < 1``. Reset
     ``qpos0 + U(+-5e-3)``, ``qvel ~ U(+-5e-3)``.
     """
 

@@ -137,7 +137,7 @@ def test_train_bad_config_file(tmp_path, text, fragment):
 
 
 def test_train_missing_config_file(tmp_path):
-    proc = cli("train", "--config", str(tmp_path / "nope.yaml"), "--no-progress")
+    proc = cli("train", "--config", str(tmp_path / "nope.yaml"), "--out", str(tmp_path / "r"))
     assert_user_error(proc, "config file not found", "nope.yaml")
 
 
