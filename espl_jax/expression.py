@@ -17,7 +17,7 @@ Constant subtrees (paths whose inputs are all pruned) fold to numbers as the exp
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from functools import cache
 
 import numpy as np
@@ -31,6 +31,10 @@ from espl_jax.symbolic import SymbolicNetwork
 # steeply with size (measured on 2 cores: length 5 in 0.4 s, length 116 in ~20 s); they are still
 # canonicalised (like terms collected) by sympy. The paper's formulas are all shorter than this.
 SIMPLIFY_MAX_LENGTH = 80
+# Above this length (counted on the protected tree) the formula stays in protected form: a barely
+# pruned network's tree is exponentially large, and sympy's ``replace`` and Add/Mul flattening walk
+# the tree, not the shared DAG, so unprotecting it would take hours.
+READABLE_MAX_LENGTH = 2000
 
 
 def _num(x: sp.Expr) -> float | None:
@@ -215,7 +219,11 @@ def readable(expr: sp.Expr) -> sp.Expr:
     """The plain-operator formula, simplified by sympy when small enough to do so quickly.
 
     Memoised: text, LaTeX, code comments and the length metric all read the same result.
+    Expressions longer than ``READABLE_MAX_LENGTH`` are returned unchanged (protected operators
+    ``PMul``, ``PDiv``, … stay in the text) so that exporting an unpruned network cannot hang.
     """
+    if complexity(expr) > READABLE_MAX_LENGTH:
+        return expr
     plain = _unprotect(expr)
     if complexity(plain) <= SIMPLIFY_MAX_LENGTH:
         simplified = sp.simplify(plain)
@@ -269,16 +277,26 @@ def mean_complexity(exprs: Sequence[sp.Expr]) -> float:
 
 def to_text(exprs: Sequence[sp.Expr], digits: int = 4) -> str:
     """``a0 = …`` lines of readable formulas with constants rounded for reading."""
-    return "\n".join(
-        f"a{i} = {sp.sstr(round_floats(readable(e), digits))}" for i, e in enumerate(exprs)
-    )
+    return "\n".join(f"a{i} = {_printed(e, sp.sstr, digits)}" for i, e in enumerate(exprs))
 
 
 def to_latex(exprs: Sequence[sp.Expr], digits: int = 4) -> str:
     """One LaTeX equation line per action dimension."""
     return "\n".join(
-        f"a_{{{i}}} = {sp.latex(round_floats(readable(e), digits))}" for i, e in enumerate(exprs)
+        f"a_{{{i}}} = {_printed(e, sp.latex, digits)}" for i, e in enumerate(exprs)
     )
+
+
+def _printed(expr: sp.Expr, printer: Callable[[sp.Expr], str], digits: int) -> str:
+    """The rounded readable formula, or a note when it is too long to be worth printing.
+
+    An unpruned network's formula has millions of nodes: printing it takes minutes and tens of
+    megabytes and nobody can read it. policy.py still reproduces it exactly (CSE keeps it small).
+    """
+    length = complexity(expr)
+    if length > READABLE_MAX_LENGTH:
+        return f"<not printed: length {length} > {READABLE_MAX_LENGTH}; the network is not pruned>"
+    return printer(round_floats(readable(expr), digits))
 
 
 # --------------------------------------------------------------------------------------------
@@ -309,7 +327,11 @@ def _code(e: sp.Expr, calls: dict, number: str, power: str) -> str:
 
 
 def _cse(exprs: Sequence[sp.Expr]) -> tuple[list[tuple[sp.Symbol, sp.Expr]], list[sp.Expr]]:
-    return sp.cse(list(exprs), symbols=sp.numbered_symbols("t"), optimizations=None)
+    # order="none": canonical ordering sorts arguments by tree size, which walks the whole
+    # (exponential) tree of an unpruned network; discovery order is deterministic as well.
+    return sp.cse(
+        list(exprs), symbols=sp.numbered_symbols("t"), optimizations=None, order="none"
+    )
 
 
 _PY_TEMPLATE = '''"""Symbolic policy exported by espl-jax. Needs only Python's math and numpy.

@@ -171,3 +171,17 @@ def test_complexity_counts_operators_constants_and_variables():
     assert ex.complexity(2.5 * x0 - x1) == 5  # -, *, 2.5, x0, x1
     assert ex.complexity(sp.sin(x0) / x1) == 4  # /, sin, x0, x1
     assert ex.mean_complexity([x0, 2.5 * x0 - x1]) == 3.0
+
+
+def test_unpruned_network_exports_in_protected_form():
+    # Every path kept: the expression tree has millions of nodes. Unprotecting or printing it walks
+    # the whole tree (minutes to hours); above READABLE_MAX_LENGTH neither is attempted.
+    net = SymbolicNetwork(LAYOUTS["arranged"], OBS_DIM, 1)
+    params = jax.tree.map(np.asarray, net.init(jax.random.PRNGKey(0)))
+    probs = jax.tree.map(np.ones_like, params["w"])
+    (expr,) = ex.network_expressions(net, params, probs)
+    assert ex.complexity(expr) > ex.READABLE_MAX_LENGTH
+    assert ex.readable(expr) is expr
+    assert ex.to_text([expr]).startswith("a0 = <not printed: length ")
+    assert ex.to_latex([expr]).startswith("a_{0} = <not printed: length ")
+    assert ex.to_python([expr], OBS_DIM, np.array([-1.0]), np.array([1.0]))
