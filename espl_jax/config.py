@@ -60,6 +60,10 @@ class Config:
 
     # ESPL losses and schedules (Table 5 and 6, Algorithm 1).
     penalty_scale: float = 1.0  # α1
+    # L1 on the symbolic network's biases, weight × mean |b| (the authors' code: ``bl0_scale``,
+    # 0 in their released script). Biases are never masked, so a constant the pruned paths no
+    # longer need stays in the formula unless something pulls it back to 0.
+    bias_l1_scale: float = 0.0
     select_scale: float = 0.08  # α2
     target_l0_ratio: float = 0.002  # l_t, as a fraction of all weights
     schedule_iterations: int = 80  # t_s
@@ -149,7 +153,7 @@ def _validate(c: Config) -> None:
     ):
         if not getattr(c, name) > 0:
             raise UserError(f"config: {name} must be > 0, got {getattr(c, name)!r}")
-    for name in ("penalty_scale", "select_scale"):
+    for name in ("penalty_scale", "select_scale", "bias_l1_scale"):
         if getattr(c, name) < 0:
             raise UserError(f"config: {name} must be >= 0, got {getattr(c, name)!r}")
     if c.buffer_size < c.steps_per_iteration:

@@ -282,9 +282,7 @@ def to_text(exprs: Sequence[sp.Expr], digits: int = 4) -> str:
 
 def to_latex(exprs: Sequence[sp.Expr], digits: int = 4) -> str:
     """One LaTeX equation line per action dimension."""
-    return "\n".join(
-        f"a_{{{i}}} = {_printed(e, sp.latex, digits)}" for i, e in enumerate(exprs)
-    )
+    return "\n".join(f"a_{{{i}}} = {_printed(e, sp.latex, digits)}" for i, e in enumerate(exprs))
 
 
 def _printed(expr: sp.Expr, printer: Callable[[sp.Expr], str], digits: int) -> str:
@@ -329,9 +327,7 @@ def _code(e: sp.Expr, calls: dict, number: str, power: str) -> str:
 def _cse(exprs: Sequence[sp.Expr]) -> tuple[list[tuple[sp.Symbol, sp.Expr]], list[sp.Expr]]:
     # order="none": canonical ordering sorts arguments by tree size, which walks the whole
     # (exponential) tree of an unpruned network; discovery order is deterministic as well.
-    return sp.cse(
-        list(exprs), symbols=sp.numbered_symbols("t"), optimizations=None, order="none"
-    )
+    return sp.cse(list(exprs), symbols=sp.numbered_symbols("t"), optimizations=None, order="none")
 
 
 _PY_TEMPLATE = '''"""Symbolic policy exported by espl-jax. Needs only Python's math and numpy.

@@ -164,6 +164,9 @@ class SAC:
             + cfg.penalty_scale * penalty
             + cfg.select_scale * regularizer / self.action_dim
         )
+        if actor.symbolic is not None and cfg.bias_l1_scale > 0:
+            biases = jnp.concatenate([b.ravel() for b in params["mean"]["b"]])
+            loss = loss + cfg.bias_l1_scale * jnp.mean(jnp.abs(biases))
         metrics = {
             "actor_loss": sac_loss,
             "penalty": penalty,
