@@ -1,14 +1,12 @@
 """Command lines: a user error is one "error: ..." line on stderr, exit code 2, no traceback."""
 
-import os
 import shutil
 import subprocess
 import sys
 from pathlib import Path
 
-import jax
 import pytest
-from jax.experimental.compilation_cache import compilation_cache
+from conftest import TINY, TINY_MLP
 
 import envs
 from espl_jax import config as config_lib
@@ -16,52 +14,12 @@ from espl_jax import run
 
 REPO = Path(__file__).resolve().parent.parent
 
-# The tiny configs of test_training.py (kept equal so the compilation cache serves both files).
-TINY = {
-    "env": "cartpole",
-    "seeds": 2,
-    "iterations": 4,
-    "steps_per_iteration": 64,
-    "updates_per_iteration": 1000,
-    "chunk_iterations": 2,
-    "batch_size": 8,
-    "critic_hidden": [32, 32],
-    "std_hidden": [16],
-    "schedule_iterations": 3,
-    "progress_eval_episodes": 2,
-    "eval_episodes": 2,
-    "reference_eval_episodes": 2,
-    "buffer_size": 1024,
-}
-TINY_MLP = {
-    **TINY,
-    "actor": "mlp",
-    "seeds": 1,
-    "iterations": 2,
-    "updates_per_iteration": 4,
-    "mlp_actor_hidden": [16],
-}
-CACHE_ENV: dict[str, str] = {}
 
-
-@pytest.fixture(scope="module", autouse=True)
-def jax_cache(tmp_path_factory):
-    """Persistent compilation cache for this session, in-process and in the CLI subprocesses."""
-    path = tmp_path_factory.getbasetemp() / "jax_cache"
-    path.mkdir(exist_ok=True)
-    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
-    old = {name: getattr(jax.config, name) for name in names}
-    jax.config.update("jax_compilation_cache_dir", str(path))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    compilation_cache.reset_cache()
-    CACHE_ENV.update(
-        JAX_COMPILATION_CACHE_DIR=str(path), JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0"
-    )
-    yield
-    CACHE_ENV.clear()
-    for name, value in old.items():
-        jax.config.update(name, value)
-    compilation_cache.reset_cache()
+@pytest.fixture(autouse=True)
+def _share_compilation_cache(jax_cache, monkeypatch):
+    """The CLI subprocesses read and fill this session's compilation cache."""
+    for name, value in jax_cache.items():
+        monkeypatch.setenv(name, value)
 
 
 def cli(module: str, *args: str, timeout: float = 600):
@@ -70,7 +28,6 @@ def cli(module: str, *args: str, timeout: float = 600):
         capture_output=True,
         text=True,
         cwd=REPO,
-        env={**os.environ, **CACHE_ENV},
         timeout=timeout,
     )
 

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import yaml
-from jax.experimental.compilation_cache import compilation_cache
+from conftest import TINY, TINY_MLP
 
 import envs
 from espl_jax import config as config_lib
@@ -33,32 +33,8 @@ from espl_jax.sac import SAC, TrainState
 from espl_jax.trainer import Trainer
 
 REPO = Path(__file__).resolve().parent.parent
+pytestmark = pytest.mark.usefixtures("jax_cache")
 
-TINY = {
-    "env": "cartpole",
-    "seeds": 2,
-    "iterations": 4,
-    "steps_per_iteration": 64,
-    "updates_per_iteration": 1000,
-    "chunk_iterations": 2,
-    "batch_size": 8,
-    "critic_hidden": [32, 32],
-    "std_hidden": [16],
-    "schedule_iterations": 3,
-    "progress_eval_episodes": 2,
-    "eval_episodes": 2,  # = progress_eval_episodes: one compiled evaluation serves both
-    "reference_eval_episodes": 2,
-    "buffer_size": 1024,
-}
-# The neural baseline: no symbolic network, so a handful of updates is enough.
-TINY_MLP = {
-    **TINY,
-    "actor": "mlp",
-    "seeds": 1,
-    "iterations": 2,
-    "updates_per_iteration": 4,
-    "mlp_actor_hidden": [16],
-}
 METRIC_KEYS = {
     "iteration", "seed", "env_steps", "train_return", "l0_ratio", "penalty", "tau", "critic_loss",
 }  # fmt: skip
@@ -66,25 +42,6 @@ METRIC_KEYS = {
 
 def tiny(**overrides) -> config_lib.Config:
     return config_lib.from_mapping({**TINY, **overrides})
-
-
-@pytest.fixture(scope="module", autouse=True)
-def jax_cache(tmp_path_factory):
-    """Persistent compilation cache for this session; returns the env vars for subprocesses."""
-    path = tmp_path_factory.getbasetemp() / "jax_cache"
-    path.mkdir(exist_ok=True)
-    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
-    old = {name: getattr(jax.config, name) for name in names}
-    jax.config.update("jax_compilation_cache_dir", str(path))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    compilation_cache.reset_cache()
-    yield {
-        "JAX_COMPILATION_CACHE_DIR": str(path),
-        "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
-    }
-    for name, value in old.items():
-        jax.config.update(name, value)
-    compilation_cache.reset_cache()
 
 
 def load_params(run_dir):
