@@ -51,6 +51,8 @@ class Config:
     # cross [0, 1] within one iteration and the sampled masks would thrash.
     probs_learning_rate: float = 3e-4
     gamma: float = 0.99
+    # ρ of the AR(1) exploration noise in collection (trainer.collect); 0 is SAC's white noise.
+    exploration_correlation: float = 0.0
     polyak: float = 0.005
     reward_scale: float = 1.0
     grad_clip: float = 0.5  # global-norm clip of the policy gradient (authors' code)
@@ -139,6 +141,10 @@ def _validate(c: Config) -> None:
     for name in _POSITIVE_INT:
         if getattr(c, name) <= 0:
             raise UserError(f"config: {name} must be positive, got {getattr(c, name)!r}")
+    if not 0.0 <= c.exploration_correlation < 1.0:
+        raise UserError(
+            f"config: exploration_correlation must be in [0, 1), got {c.exploration_correlation!r}"
+        )
     if c.reference_eval_episodes < 0:
         raise UserError("config: reference_eval_episodes must be >= 0")
     for name in _UNIT_INTERVAL:

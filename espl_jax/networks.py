@@ -131,6 +131,13 @@ class Actor:
         u = mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape)
         return jnp.tanh(u), tanh_gaussian_log_prob(u, mean, log_std), penalty
 
+    def act_with_noise(
+        self, params: dict, mask: list | None, obs: jax.Array, eps: jax.Array
+    ) -> jax.Array:
+        """a = tanh(μ + σ ε) for a given standard-normal ε (action_dim,): collection's action."""
+        mean, _ = self.mean(params, mask, obs)
+        return jnp.tanh(mean + jnp.exp(self.log_std(params, obs)) * eps)
+
     def deterministic(self, params: dict, mask: list | None, obs: jax.Array) -> jax.Array:
         return jnp.tanh(self.mean(params, mask, obs)[0])
 

@@ -39,6 +39,7 @@ class TrainState:
     env_state: Any
     obs: jax.Array
     episode_return: jax.Array  # return of the episode in progress
+    exploration_noise: jax.Array  # (action_dim,) the ε of the last collection step
     key: jax.Array
     iteration: jax.Array  # int32, completed training iterations
     env_steps: jax.Array  # int32

@@ -9,6 +9,7 @@ only runs between chunks (see :mod:`espl_jax.run`).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -63,6 +64,7 @@ class Trainer:
             env_state=env_state,
             obs=obs,
             episode_return=jnp.zeros(()),
+            exploration_noise=jnp.zeros(self.env.action_dim),
             key=key,
             iteration=zero_i,
             env_steps=zero_i,
@@ -79,13 +81,22 @@ class Trainer:
     def collect(
         self, state: TrainState, mask: list | None, key: jax.Array
     ) -> tuple[TrainState, replay.Transition, Metrics]:
-        """K env steps with one fixed mask (Algorithm 1, lines 5–7); resets finished episodes."""
+        """K env steps with one fixed mask (Algorithm 1, lines 5–7); resets finished episodes.
+
+        The action is tanh(μ + σ ε). With ``exploration_correlation`` ρ > 0, ε is an AR(1)
+        process, ε_t = ρ ε_{t−1} + √(1−ρ²) ξ_t: still N(0, 1) at every step, so the policy's
+        distribution per step is unchanged, but successive pushes agree for ~1/(1−ρ) steps
+        (temporally correlated exploration; white noise, ρ = 0, is plain SAC).
+        """
         env, actor, params = self.env, self.sac.actor, self.env.default_params
+        rho = self.config.exploration_correlation
+        innovation_scale = math.sqrt(1.0 - rho**2)
 
         def step(carry, k):
-            env_state, obs, ep_return = carry
+            env_state, obs, ep_return, eps = carry
             k_act, k_env, k_reset = jax.random.split(k, 3)
-            action, _, _ = actor.sample(k_act, state.actor, mask, obs)
+            eps = rho * eps + innovation_scale * jax.random.normal(k_act, eps.shape)
+            action = actor.act_with_noise(state.actor, mask, obs, eps)
             next_obs, next_state, reward, terminated, truncated, _ = env.step(
                 k_env, env_state, action, params
             )
@@ -102,18 +113,21 @@ class Trainer:
                 env_state,
                 jnp.where(done, reset_obs, next_obs),
                 jnp.where(done, 0.0, ep_return),
+                eps,
             )
             return carry, out
 
         keys = jax.random.split(key, self.config.steps_per_iteration)
-        (env_state, obs, ep_return), (transitions, done, finished_returns) = jax.lax.scan(
-            step, (state.env_state, state.obs, state.episode_return), keys
+        carry = (state.env_state, state.obs, state.episode_return, state.exploration_noise)
+        (env_state, obs, ep_return, eps), (transitions, done, finished_returns) = jax.lax.scan(
+            step, carry, keys
         )
         finished = jnp.sum(done)
         state = state.replace(
             env_state=env_state,
             obs=obs,
             episode_return=ep_return,
+            exploration_noise=eps,
             env_steps=state.env_steps + self.config.steps_per_iteration,
             episodes=state.episodes + finished,
         )

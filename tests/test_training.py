@@ -322,7 +322,8 @@ def test_critic_target_bootstraps_unless_terminated():
     learner["target_critic"] = sac.critic.init(jax.random.PRNGKey(7), jnp.zeros(4), jnp.zeros(1))
     learner["log_alpha"] = jnp.asarray(-0.7)
     state = TrainState(
-        **learner, buffer=None, env_state=None, obs=None, episode_return=None, key=None,
+        **learner, buffer=None, env_state=None, obs=None, episode_return=None,
+        exploration_noise=None, key=None,
         iteration=None, env_steps=None, episodes=None,
     )  # fmt: skip
     rng = np.random.default_rng(0)
@@ -372,6 +373,28 @@ def test_truncation_is_stored_as_not_terminated():
     continues = np.all(next_obs[:-1] == obs[1:], axis=1)
     # next_obs at a truncation is the true next state, not the reset observation.
     np.testing.assert_array_equal(np.flatnonzero(~continues), [4, 9])
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.9])
+def test_exploration_noise_is_standard_normal_with_lag_one_correlation_rho(rho):
+    """Collection's ε (recovered from the actions) is N(0, 1) per step, with autocorrelation ρ."""
+    steps = 4000
+    cfg = config_lib.from_mapping(
+        {**TINY_MLP, "env": "pendulum", "steps_per_iteration": steps, "buffer_size": steps,
+         "iterations": 1, "exploration_correlation": rho}
+    )  # fmt: skip
+    trainer = Trainer(cfg)
+    state = jax.jit(trainer.init)(jax.random.PRNGKey(0))
+    # A zero actor has μ = 0 and σ = exp(0) = 1, so the action is tanh(ε): ε = artanh(a).
+    state = state.replace(actor=jax.tree.map(jnp.zeros_like, state.actor))
+    _, transitions, _ = jax.jit(lambda s, k: trainer.collect(s, None, k))(
+        state, jax.random.PRNGKey(1)
+    )
+    eps = np.arctanh(np.asarray(transitions.action, np.float64)[:, 0])
+    assert np.all(np.isfinite(eps))
+    assert abs(eps.mean()) < 0.2 and abs(eps.std() - 1.0) < 0.1
+    lag1 = np.corrcoef(eps[1:], eps[:-1])[0, 1]
+    assert abs(lag1 - rho) < 0.05
 
 
 def test_replay_insert_wraps_and_size_saturates():
