@@ -9,7 +9,8 @@ Usage::
 
 To add an environment, add ``name -> factory`` to ``_REGISTRY`` below (or call ``register``). A
 factory is any callable returning an ``Environment``; keep heavy imports (MJX, Box2D) inside the
-factory so ``import envs`` stays cheap::
+factory so ``import envs`` stays cheap (``envs.box2d`` imports gymnasium only when an env is
+built)::
 
     def _hopper(**kwargs):
         from envs.hopper import Hopper
@@ -21,10 +22,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from envs import box2d
 from envs.base import Environment, time_limit
+from envs.box2d import HostEnv
 from envs.classic import CartPole, MountainCar, Pendulum
 
-EnvFactory = Callable[..., Environment]
+# A registry entry builds either a functional JAX env or, for the Box2D tasks, a ``HostEnv``: a
+# description of a gymnasium env that the trainer steps on the host (see envs/box2d.py).
+EnvFactory = Callable[..., Environment | HostEnv]
 
 
 def _mjx_factory(name: str) -> EnvFactory:
@@ -49,6 +54,9 @@ _REGISTRY: dict[str, EnvFactory] = {
     "inverted_double_pendulum": _mjx_factory("inverted_double_pendulum"),
     "inverted_pendulum_swingup": _mjx_factory("inverted_pendulum_swingup"),
     "walker2d": _mjx_factory("walker2d"),
+    # gymnasium Box2D envs, stepped on the host (envs/box2d.py)
+    "bipedalwalker": box2d.bipedalwalker,
+    "lunarlander": box2d.lunarlander,
 }
 
 KNOWN_ENVS: tuple[str, ...] = tuple(sorted(_REGISTRY))
@@ -68,7 +76,12 @@ def register(name: str, factory: EnvFactory) -> None:
     KNOWN_ENVS = tuple(sorted(_REGISTRY))
 
 
-def make(name: str, **kwargs) -> Environment:
+def is_host(env: Environment | HostEnv) -> bool:
+    """Whether ``env`` is stepped on the host (gymnasium) rather than in JAX."""
+    return isinstance(env, HostEnv)
+
+
+def make(name: str, **kwargs) -> Environment | HostEnv:
     """Builds a registered environment.
 
     Args:
@@ -76,7 +89,8 @@ def make(name: str, **kwargs) -> Environment:
         **kwargs: forwarded to the env's factory (e.g. ``horizon=200``).
 
     Returns:
-        The environment instance.
+        The environment instance: an ``Environment`` (JAX), or a ``HostEnv`` for the gymnasium
+        Box2D envs (``is_host``).
 
     Raises:
         ValueError: ``name`` is not registered; the message lists the known names.
@@ -90,8 +104,10 @@ __all__ = [
     "KNOWN_ENVS",
     "CartPole",
     "Environment",
+    "HostEnv",
     "MountainCar",
     "Pendulum",
+    "is_host",
     "make",
     "register",
     "time_limit",

@@ -8,6 +8,8 @@ normalized [-1, 1] of the JAX envs:
 * ``mountaincar``: ``gymnasium.make("MountainCarContinuous-v0")`` (force in [-1, 1], 999 steps).
 * ``cartpole``: ``ContinuousCartPole``, DSO's ``CustomCartPoleContinuous-v0`` in numpy float64
   (action in [-1, 1], force ``30 * action``), wrapped in a 1000-step ``TimeLimit``.
+* ``lunarlander``, ``bipedalwalker``: the gymnasium Box2D envs themselves (``envs/box2d.py``;
+  the trainer steps the same envs on the host).
 
 Nothing here is jit-able; this module runs on the host only.
 """
@@ -21,6 +23,8 @@ import gymnasium
 import numpy as np
 from gymnasium import spaces
 from gymnasium.wrappers import TimeLimit
+
+from envs import box2d
 
 
 class ContinuousCartPole(gymnasium.Env):
@@ -135,6 +139,8 @@ _REFERENCES: dict[str, Callable[..., gymnasium.Env]] = {
     "cartpole": _cartpole,
     "mountaincar": lambda **kwargs: gymnasium.make("MountainCarContinuous-v0", **kwargs),
     "pendulum": lambda **kwargs: gymnasium.make("Pendulum-v1", **kwargs),
+    "lunarlander": lambda **kwargs: box2d.lunarlander().make_env(**kwargs),
+    "bipedalwalker": lambda **kwargs: box2d.bipedalwalker().make_env(**kwargs),
 }
 
 

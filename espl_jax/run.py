@@ -2,7 +2,9 @@
 
 Between compiled chunks the host logs metrics, draws the progress bar, evaluates the deterministic
 policy for the learning curve, and checkpoints. At the end it exports each seed's formula, picks
-the best seed by evaluating the exported formula, and writes the run directory:
+the best seed by evaluating the exported formula, and writes the run directory. For host-stepped
+gymnasium envs (Box2D) the chunks and evaluations come from :mod:`espl_jax.host` instead of the
+compiled ones (``chunk_runner``, ``evaluator``); the run directory is the same:
 
     config.yaml         the resolved config
     metrics.jsonl       one row per iteration and seed (+ deterministic eval after each chunk)
@@ -15,6 +17,7 @@ the best seed by evaluating the exported formula, and writes the run directory:
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import time
@@ -25,7 +28,7 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from espl_jax import checkpoint, evaluation
+from espl_jax import checkpoint, evaluation, host
 from espl_jax import config as config_lib
 from espl_jax import expression as ex
 from espl_jax.config import Config, UserError
@@ -87,8 +90,8 @@ def train(
 
     end = config.iterations if stop_after is None else min(stop_after, config.iterations)
     started = time.perf_counter()
-    chunks: dict[int, Any] = {}
-    progress_eval = trainer.compiled_evaluate(config.progress_eval_episodes)
+    run_chunk, close = chunk_runner(trainer)
+    progress_eval = evaluator(trainer, config.progress_eval_episodes)
     bar = tqdm(
         total=config.iterations,
         initial=start,
@@ -96,13 +99,11 @@ def train(
         unit="it",
         disable=not show_progress,
     )
-    with checkpoint.manager(run_dir / CHECKPOINT_DIR) as mngr:
+    with checkpoint.manager(run_dir / CHECKPOINT_DIR) as mngr, close:
         iteration = start
         while iteration < end:
             length = min(config.chunk_iterations, end - iteration)
-            if length not in chunks:
-                chunks[length] = trainer.compiled_chunk(length)
-            new_state, metrics = chunks[length](state)
+            new_state, metrics = run_chunk(state, length)
             metrics = jax.device_get(metrics)
             _check_finite(metrics, iteration, run_dir, mngr.latest_step())
             eval_keys = jax.vmap(jax.random.fold_in, (0, None))(new_state.key, 1)
@@ -124,12 +125,41 @@ def train(
     return finish(trainer, state, run_dir, train_seconds)
 
 
+def chunk_runner(trainer: Trainer) -> tuple[Any, contextlib.AbstractContextManager]:
+    """``(run_chunk, closer)``: ``run_chunk(state, length) -> (state, metrics [S, length])``.
+
+    JAX envs: one compiled ``Trainer.compiled_chunk`` per chunk length. Host (Box2D) envs: the
+    host collector of :mod:`espl_jax.host`, whose gymnasium envs ``closer`` closes on exit.
+    """
+    if trainer.on_host:
+        collector = host.HostCollector(trainer)
+        return collector.chunk, contextlib.closing(collector)
+    compiled: dict[int, Any] = {}
+
+    def run_chunk(state: TrainState, length: int):
+        if length not in compiled:
+            compiled[length] = trainer.compiled_chunk(length)
+        return compiled[length](state)
+
+    return run_chunk, contextlib.nullcontext()
+
+
+def evaluator(trainer: Trainer, episodes: int):
+    """(actor params [S, ...], keys [S, 2]) -> returns [S, episodes] of the eval-mask policy.
+
+    In JAX for JAX envs, in gymnasium on the host for host (Box2D) envs.
+    """
+    if trainer.on_host:
+        return host.HostEvaluator(trainer, episodes)
+    return trainer.compiled_evaluate(episodes)
+
+
 def finish(
     trainer: Trainer, state: TrainState, run_dir: Path, train_seconds: float
 ) -> dict[str, Any]:
     """Export every seed, pick the best by its exported formula's return, write the artifacts."""
     cfg, env = trainer.config, trainer.env
-    evaluate = trainer.compiled_evaluate(cfg.eval_episodes)
+    evaluate = evaluator(trainer, cfg.eval_episodes)
     # Select on one set of episodes, report on a fresh one, so the reported figure is unbiased.
     select_keys = jax.vmap(jax.random.fold_in, (0, None))(state.key, 2)
     report_keys = jax.vmap(jax.random.fold_in, (0, None))(state.key, 3)

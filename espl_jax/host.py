@@ -1,0 +1,216 @@
+"""Training and evaluation on host-stepped gymnasium envs (the Box2D tasks), same algorithm.
+
+Only the env steps leave JAX. One iteration, for all seeds at once:
+
+1. ``Trainer.start_iteration`` (jitted, vmapped over seeds): the next key, the Bernoulli
+   collection mask of each seed (Algorithm 1, line 4) and the per-step noise keys.
+2. K = ``steps_per_iteration`` steps of a gymnasium ``SyncVectorEnv`` with one env per seed: the
+   batched observation goes through ``Trainer.explore`` (jitted, vmapped; the same AR(1) noise and
+   tanh-Gaussian action as the JAX collector), the action is mapped to env units and stepped.
+   ``terminated`` is stored, not ``truncated``; at an episode end the stored next_obs is the true
+   final observation (same-step autoreset puts it in ``info["final_obs"]``).
+3. ``Trainer.record_collection`` + ``Trainer.learn`` (jitted, vmapped, state donated): append the
+   K transitions to each seed's replay buffer and take ``updates_per_iteration`` SAC steps in one
+   ``lax.scan``, exactly as in the JAX trainer.
+
+Checkpoints hold the same TrainState as for JAX envs (``env_state`` is None; ``obs`` and
+``episode_return`` are those of the host envs at the end of the last iteration). The Box2D
+simulator state itself is not checkpointed: a resumed run starts from freshly reset envs, seeded
+from the restored state's keys, and drops the partial episodes in progress at the checkpoint.
+So a resumed run is reproducible but not bitwise equal to an uninterrupted one (it is for JAX
+envs).
+
+Evaluation (``HostEvaluator``) runs the deterministic eval-mask policy (the exported formula) in
+gymnasium, all seeds × episodes stepped together; the episode seeds come from the given keys, so
+different keys give different episodes.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from espl_jax import replay
+from espl_jax.sac import Metrics, TrainState
+from espl_jax.trainer import Trainer
+
+# fold_in salts of the state key for the env seeds of a (re)start (run.py uses 1, 2 and 3 for
+# the evaluation keys).
+RESET_SALT = 4
+
+
+def env_seeds(keys: jax.Array) -> list[int]:
+    """One gymnasium seed per key (keys [S, 2]), drawn from the key: deterministic."""
+    draw = jax.vmap(lambda k: jax.random.randint(k, (), 0, 2**31 - 1))
+    return [int(s) for s in np.asarray(draw(jnp.asarray(keys)))]
+
+
+def reset_seeds(state_keys: jax.Array) -> list[int]:
+    """The env seeds a (re)started collector resets its envs with, from the states' keys."""
+    return env_seeds(jax.vmap(jax.random.fold_in, (0, None))(state_keys, RESET_SALT))
+
+
+class HostCollector:
+    """Steps one gymnasium env per seed on the host; policy and updates stay jitted.
+
+    ``chunk(state, length)`` has the signature of ``Trainer.compiled_chunk(length)(state)``: it
+    returns the new state (the input state's buffers are donated) and metrics shaped
+    [seeds, length]. The envs are built and reset on the first call (see the module docstring
+    for what that means for resuming).
+    """
+
+    def __init__(self, trainer: Trainer):
+        if not trainer.on_host:
+            raise ValueError(f"{trainer.config.env} is a JAX env; use Trainer.compiled_chunk")
+        self.trainer = trainer
+        self.env = trainer.env
+        self.seeds = trainer.config.seeds
+        self.steps = trainer.config.steps_per_iteration
+        self.vector_env = None
+        self.obs: np.ndarray | None = None  # [S, obs_dim] current observation of each env
+        self.episode_return: np.ndarray | None = None  # [S] return of the episode in progress
+
+        def begin(key, actor_params):
+            key, mask, k_collect, k_update = trainer.start_iteration(key, actor_params)
+            return key, mask, jax.random.split(k_collect, self.steps), k_update
+
+        def learn(state, transitions, done, finished_returns, obs, episode_return, eps, key):
+            state, c_metrics = trainer.record_collection(
+                state,
+                env_state=state.env_state,
+                obs=obs,
+                episode_return=episode_return,
+                exploration_noise=eps,
+                done=done,
+                finished_returns=finished_returns,
+            )
+            return trainer.learn(state, transitions, c_metrics, key)
+
+        self._begin = jax.jit(jax.vmap(begin))
+        self._explore = jax.jit(jax.vmap(trainer.explore))
+        self._learn = jax.jit(jax.vmap(learn), donate_argnums=0)
+
+    def reset(self, state: TrainState) -> None:
+        """(Re)builds the vector env and resets it, env seeds drawn from the state's keys."""
+        self.close()
+        self.vector_env = self.env.make_vector_env(self.seeds)
+        obs, _ = self.vector_env.reset(seed=reset_seeds(state.key))
+        self.obs = np.asarray(obs, np.float32)
+        self.episode_return = np.zeros(self.seeds)
+
+    def close(self) -> None:
+        if self.vector_env is not None:
+            self.vector_env.close()
+            self.vector_env = None
+
+    def collect(
+        self, state: TrainState, mask: list | None, step_keys: jax.Array
+    ) -> tuple[replay.Transition, np.ndarray, np.ndarray, jax.Array]:
+        """K steps of every seed's env with the seed's fixed mask (Algorithm 1, lines 5–7).
+
+        Args:
+            state: the seeds' states (only ``actor`` and ``exploration_noise`` are read).
+            mask: the seeds' collection masks (leading seed axis).
+            step_keys: [S, K, 2] one noise key per seed and step.
+
+        Returns:
+            ``(transitions [S, K, ...], done [S, K], finished_returns [S, K], eps [S, A])``,
+            numpy except the final noise ε. ``self.obs`` and ``self.episode_return`` advance.
+        """
+        if self.vector_env is None:
+            self.reset(state)
+        s, k, env = self.seeds, self.steps, self.env
+        obs = np.empty((s, k, env.obs_dim), np.float32)
+        actions = np.empty((s, k, env.action_dim), np.float32)
+        rewards = np.empty((s, k), np.float32)
+        next_obs = np.empty((s, k, env.obs_dim), np.float32)
+        terminated = np.empty((s, k), bool)
+        done = np.empty((s, k), bool)
+        finished_returns = np.zeros((s, k), np.float32)
+        step_keys = np.asarray(step_keys)
+        eps = state.exploration_noise
+        for t in range(k):
+            action, eps = self._explore(state.actor, mask, self.obs, eps, step_keys[:, t])
+            action = np.asarray(action)
+            new_obs, reward, term, trunc, info = self.vector_env.step(env.to_env_action(action))
+            ended = term | trunc
+            true_next = np.array(new_obs, np.float32)
+            for i in np.flatnonzero(ended):
+                true_next[i] = info["final_obs"][i]
+            obs[:, t], actions[:, t], rewards[:, t] = self.obs, action, reward
+            next_obs[:, t], terminated[:, t], done[:, t] = true_next, term, ended
+            self.episode_return += reward
+            finished_returns[:, t] = np.where(ended, self.episode_return, 0.0)
+            self.episode_return[ended] = 0.0
+            self.obs = np.asarray(new_obs, np.float32)
+        transitions = replay.Transition(obs, actions, rewards, next_obs, terminated)
+        return transitions, done, finished_returns, eps
+
+    def iteration(self, state: TrainState) -> tuple[TrainState, Metrics]:
+        """One iteration for all seeds (Algorithm 1, lines 3–18); metrics shaped [S]."""
+        key, mask, step_keys, k_update = self._begin(state.key, state.actor)
+        state = state.replace(key=key)
+        transitions, done, finished_returns, eps = self.collect(state, mask, step_keys)
+        return self._learn(
+            state,
+            transitions,
+            done,
+            finished_returns,
+            self.obs,
+            self.episode_return.astype(np.float32),
+            eps,
+            k_update,
+        )
+
+    def chunk(self, state: TrainState, length: int) -> tuple[TrainState, Metrics]:
+        """``length`` iterations; metrics stacked to [S, length] like a compiled chunk's."""
+        rows = []
+        for _ in range(length):
+            state, metrics = self.iteration(state)
+            rows.append(jax.device_get(metrics))
+        return state, jax.tree.map(lambda *xs: np.stack(xs, axis=1), *rows)
+
+
+class HostEvaluator:
+    """Deterministic returns in gymnasium: (actor params [S, ...], keys [S, 2]) -> [S, E].
+
+    The host counterpart of ``Trainer.compiled_evaluate(episodes)``: the eval-mask policy (the
+    exported formula), seed s plays episodes with env seeds ``env_seeds(keys)[s] + 0 … E−1``.
+    All S × E episodes are stepped together with one batched policy call per step.
+    """
+
+    def __init__(self, trainer: Trainer, episodes: int):
+        self.env = trainer.env
+        self.episodes = episodes
+        actor = trainer.sac.actor
+
+        def act(params, obs):  # one seed: obs [E, obs_dim]
+            mask = actor.eval_mask(params)
+            return jax.vmap(actor.deterministic, (None, None, 0))(params, mask, obs)
+
+        self._act = jax.jit(jax.vmap(act))
+
+    def __call__(self, actor_params: dict, keys: jax.Array) -> np.ndarray:
+        seeds, episodes, env = int(np.shape(keys)[0]), self.episodes, self.env
+        first = env_seeds(keys)
+        gym_envs = [[env.make_env() for _ in range(episodes)] for _ in range(seeds)]
+        try:
+            obs = np.zeros((seeds, episodes, env.obs_dim), np.float32)
+            for s, row in enumerate(gym_envs):
+                for e, gym_env in enumerate(row):
+                    obs[s, e] = gym_env.reset(seed=first[s] + e)[0]
+            totals = np.zeros((seeds, episodes))
+            done = np.zeros((seeds, episodes), bool)
+            while not done.all():
+                actions = env.to_env_action(np.asarray(self._act(actor_params, obs)))
+                for s, e in zip(*np.nonzero(~done), strict=True):
+                    o, reward, terminated, truncated, _ = gym_envs[s][e].step(actions[s, e])
+                    obs[s, e] = o
+                    totals[s, e] += float(reward)
+                    done[s, e] = terminated or truncated
+        finally:
+            for row in gym_envs:
+                for gym_env in row:
+                    gym_env.close()
+        return totals
