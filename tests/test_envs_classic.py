@@ -342,8 +342,10 @@ def test_unknown_name_lists_known_names():
     for name in ("cartpole", "mountaincar", "pendulum"):
         assert name in str(err.value)
     assert ", ".join(envs.KNOWN_ENVS) in str(err.value)
-    with pytest.raises(ValueError, match="cartpole, mountaincar, pendulum"):
+    with pytest.raises(ValueError) as err:
         reference_env("no_such_env")
+    for name in ("cartpole", "mountaincar", "pendulum", "lunarlander", "bipedalwalker"):
+        assert name in str(err.value)
 
 
 def test_registry():
