@@ -10,6 +10,8 @@ normalized [-1, 1] of the JAX envs:
   (action in [-1, 1], force ``30 * action``), wrapped in a 1000-step ``TimeLimit``.
 * ``lunarlander``, ``bipedalwalker``: the gymnasium Box2D envs themselves (``envs/box2d.py``;
   the trainer steps the same envs on the host).
+* ``inverted_double_pendulum``, ``hopper``, ``walker2d``, ``halfcheetah``: gymnasium's MuJoCo
+  ``v5`` classes, which the MJX envs reproduce. ``inverted_pendulum_swingup`` has none.
 
 Nothing here is jit-able; this module runs on the host only.
 """
@@ -141,6 +143,12 @@ _REFERENCES: dict[str, Callable[..., gymnasium.Env]] = {
     "pendulum": lambda **kwargs: gymnasium.make("Pendulum-v1", **kwargs),
     "lunarlander": lambda **kwargs: box2d.lunarlander().make_env(**kwargs),
     "bipedalwalker": lambda **kwargs: box2d.bipedalwalker().make_env(**kwargs),
+    # MJX envs reproduce these gymnasium v5 classes (envs/mjx.py). The swing-up task has no
+    # gymnasium counterpart (PyBullet's is not installable here), so it has no reference.
+    "inverted_double_pendulum": lambda **kw: gymnasium.make("InvertedDoublePendulum-v5", **kw),
+    "hopper": lambda **kwargs: gymnasium.make("Hopper-v5", **kwargs),
+    "walker2d": lambda **kwargs: gymnasium.make("Walker2d-v5", **kwargs),
+    "halfcheetah": lambda **kwargs: gymnasium.make("HalfCheetah-v5", **kwargs),
 }
 
 

@@ -492,3 +492,18 @@ def test_reset_eager():
 def test_import_envs_does_not_import_mujoco():
     code = "import sys, envs; assert 'mujoco' not in sys.modules, 'mujoco imported'"
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+@pytest.mark.parametrize("name", ["inverted_double_pendulum", "hopper", "walker2d", "halfcheetah"])
+def test_reference_env_is_the_gymnasium_v5_class(name):
+    """Exported policies are evaluated in gymnasium's v5 env with the same sizes and units."""
+    pytest.importorskip("imageio", reason="gymnasium.envs.mujoco imports imageio")
+    from envs.reference import reference_env
+
+    env, ref = envs.make(name), reference_env(name)
+    assert ref.spec.id.endswith("-v5") and ref.spec.max_episode_steps == env.horizon
+    assert ref.observation_space.shape == (env.obs_dim,)
+    np.testing.assert_array_equal(ref.action_space.low, env.action_low)
+    np.testing.assert_array_equal(ref.action_space.high, env.action_high)
+    obs, _ = ref.reset(seed=0)
+    assert obs.shape == (env.obs_dim,)
