@@ -22,8 +22,15 @@ def manager(directory: str | Path) -> ocp.CheckpointManager:
 
 def save(mngr: ocp.CheckpointManager, iteration: int, state: Any) -> None:
     """Write the state under ``iteration`` and wait until it is committed to disk."""
-    mngr.save(iteration, args=ocp.args.StandardSave(state), force=True)
+    mngr.save(iteration, args=ocp.args.StandardSave(_without_empty(state)), force=True)
     mngr.wait_until_finished()
+
+
+def _without_empty(tree: Any) -> Any:
+    """Zero-size arrays become None: orbax refuses to save them, and MJX data has some (e.g.
+    ``act`` for models without actuator state). They carry no values; restore takes them from
+    the template."""
+    return jax.tree.map(lambda x: None if x.size == 0 else x, tree)
 
 
 def restore_latest(directory: str | Path, like: Any) -> tuple[int, Any]:
@@ -40,7 +47,7 @@ def restore_latest(directory: str | Path, like: Any) -> tuple[int, Any]:
         step = mngr.latest_step()
         if step is None:
             raise UserError(f"no complete checkpoint in {directory}")
-        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, like)
+        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, _without_empty(like))
         try:
             state = mngr.restore(step, args=ocp.args.StandardRestore(abstract))
         except Exception as err:  # orbax raises many types for unreadable data
@@ -48,7 +55,12 @@ def restore_latest(directory: str | Path, like: Any) -> tuple[int, Any]:
                 f"checkpoint {directory / str(step)} is unreadable ({type(err).__name__}: "
                 f"{str(err).splitlines()[0][:200]}); it may be corrupt or from another config"
             ) from None
+    state = jax.tree.map(lambda r, t: t if r is None else r, state, like, is_leaf=_is_none)
     return step, state
+
+
+def _is_none(x: Any) -> bool:
+    return x is None
 
 
 @contextlib.contextmanager

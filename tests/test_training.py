@@ -26,8 +26,8 @@ import yaml
 from conftest import TINY, TINY_MLP
 
 import envs
+from espl_jax import checkpoint, evaluation, replay, run
 from espl_jax import config as config_lib
-from espl_jax import evaluation, replay, run
 from espl_jax.networks import tanh_gaussian_log_prob
 from espl_jax.sac import SAC, TrainState
 from espl_jax.trainer import Trainer
@@ -395,6 +395,17 @@ def test_exploration_noise_is_standard_normal_with_lag_one_correlation_rho(rho):
     assert abs(eps.mean()) < 0.2 and abs(eps.std() - 1.0) < 0.1
     lag1 = np.corrcoef(eps[1:], eps[:-1])[0, 1]
     assert abs(lag1 - rho) < 0.05
+
+
+def test_checkpoint_round_trip_keeps_zero_size_arrays(tmp_path):
+    """MJX env states hold zero-size arrays (``data.act``), which orbax alone refuses to save."""
+    state = {"a": jnp.arange(3.0), "empty": jnp.zeros((2, 0)), "none": None}
+    with checkpoint.manager(tmp_path / "ckpt") as mngr:
+        checkpoint.save(mngr, 1, state)
+    step, restored = checkpoint.restore_latest(tmp_path / "ckpt", state)
+    assert step == 1 and restored["none"] is None
+    assert restored["empty"].shape == (2, 0) and restored["empty"].dtype == jnp.float32
+    np.testing.assert_array_equal(restored["a"], state["a"])
 
 
 def test_replay_insert_wraps_and_size_saturates():
