@@ -7,6 +7,7 @@ import sys
 import time
 from pathlib import Path
 
+import envs
 from espl_jax import config as config_lib
 from espl_jax import run
 from espl_jax.cli import run_main
@@ -61,7 +62,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"formula (seed {result['best_seed']}, length {result['length']:.0f}):")
         print("  " + result["formula"].replace("\n", "\n  "))
     ev = result["jax_eval"]
-    print(f"exported policy, {ev['episodes']} episodes in JAX: {ev['mean']:.2f} ± {ev['std']:.2f}")
+    # Host (Box2D) envs are evaluated in gymnasium, JAX envs in JAX; an MLP has no formula.
+    where = "in gymnasium" if envs.is_host(config.env) else "in JAX"
+    what = "exported policy" if "formula" in result else "deterministic policy"
+    print(f"{what}, {ev['episodes']} episodes {where}: {ev['mean']:.2f} ± {ev['std']:.2f}")
     if "reference_eval" in result:
         ref = result["reference_eval"]
         print(
