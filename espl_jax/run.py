@@ -161,11 +161,14 @@ def finish(
     cfg, env = trainer.config, trainer.env
     evaluate = evaluator(trainer, cfg.eval_episodes)
     # Select on one set of episodes, report on a fresh one, so the reported figure is unbiased.
-    select_keys = jax.vmap(jax.random.fold_in, (0, None))(state.key, 2)
+    # A single seed needs no selection (for MJX envs it would double the final evaluation).
     report_keys = jax.vmap(jax.random.fold_in, (0, None))(state.key, 3)
-    selection = np.asarray(evaluate(state.actor, select_keys))
     report = np.asarray(evaluate(state.actor, report_keys))
-    best = int(np.argmax(selection.mean(axis=1)))
+    best = 0
+    if cfg.seeds > 1:
+        select_keys = jax.vmap(jax.random.fold_in, (0, None))(state.key, 2)
+        selection = np.asarray(evaluate(state.actor, select_keys))
+        best = int(np.argmax(selection.mean(axis=1)))
 
     per_seed = []
     formulas = {}
