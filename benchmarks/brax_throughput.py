@@ -15,11 +15,11 @@ Not part of the test suite (CI never runs ``benchmarks/``).
 from __future__ import annotations
 
 import argparse
-import time
 
 import jax
 import jax.numpy as jnp
 from brax import envs as brax_envs
+from env_throughput import _fmt_rate, compile_and_time  # same directory: run as a script
 
 
 def make_run(env, steps: int, batched: bool):
@@ -58,16 +58,7 @@ def benchmark(name: str, backend: str, batch: int, steps: int, repeats: int) -> 
         state = jax.jit(jax.vmap(env.reset))(jax.random.split(key, batch))
     else:
         state = jax.jit(env.reset)(key)
-    run = jax.jit(make_run(env, steps, batched))
-    start = time.perf_counter()
-    compiled = run.lower(key, state).compile()
-    compile_s = time.perf_counter() - start
-    jax.block_until_ready(compiled(key, state))  # warm-up
-    best = float("inf")
-    for i in range(repeats):
-        start = time.perf_counter()
-        out = jax.block_until_ready(compiled(jax.random.key(i + 1), state))
-        best = min(best, time.perf_counter() - start)
+    compile_s, best, out = compile_and_time(make_run(env, steps, batched), key, (state,), repeats)
     return dict(
         compile_s=compile_s, run_s=best, steps_per_s=batch * steps / best, resets=int(out[1])
     )
@@ -87,10 +78,9 @@ def main(argv: list[str] | None = None) -> None:
     for name in args.envs.split(","):
         for batch in (int(b) for b in args.batch.split(",")):
             r = benchmark(name.strip(), args.backend, batch, args.steps, args.repeats)
-            rate = r["steps_per_s"]
-            shown = f"{rate / 1e3:.1f}k" if rate >= 1e3 else f"{rate:.0f}"
             print(
-                f"| {name} | {batch} | {r['compile_s']:.1f} | {r['run_s']:.2f} | {shown} "
+                f"| {name} | {batch} | {r['compile_s']:.1f} | {r['run_s']:.2f} "
+                f"| {_fmt_rate(r['steps_per_s'])} "
                 f"| {r['resets']} |",
                 flush=True,
             )

@@ -98,22 +98,32 @@ def benchmark(name: str, batch: int, steps: int, repeats: int, per_env_params: b
         obs, state = jax.jit(reset)(jax.random.split(key, batch), params)
     else:
         obs, state = jax.jit(env.reset)(key, params)
-    run = jax.jit(make_run(env, steps, per_env_params and batched, batched))
-    start = time.perf_counter()
-    compiled = run.lower(key, params, obs, state).compile()
-    compile_s = time.perf_counter() - start
-    out = jax.block_until_ready(compiled(key, params, obs, state))  # warm-up
-    best = float("inf")
-    for i in range(repeats):
-        start = time.perf_counter()
-        out = jax.block_until_ready(compiled(jax.random.key(i + 1), params, obs, state))
-        best = min(best, time.perf_counter() - start)
+    run = make_run(env, steps, per_env_params and batched, batched)
+    compile_s, best, out = compile_and_time(run, key, (params, obs, state), repeats)
     return dict(
         compile_s=compile_s,
         run_s=best,
         steps_per_s=batch * steps / best,
         episodes=int(out[3]),
     )
+
+
+def compile_and_time(run, key: jax.Array, args: tuple, repeats: int) -> tuple[float, float, object]:
+    """``(compile_s, best run_s, output)`` of ``jit(run)(key, *args)``.
+
+    Compile is timed apart (``lower(...).compile()``); one warm-up call, then the best of
+    ``repeats`` calls, each with a fresh key.
+    """
+    start = time.perf_counter()
+    compiled = jax.jit(run).lower(key, *args).compile()
+    compile_s = time.perf_counter() - start
+    out = jax.block_until_ready(compiled(key, *args))  # warm-up
+    best = float("inf")
+    for i in range(repeats):
+        start = time.perf_counter()
+        out = jax.block_until_ready(compiled(jax.random.key(i + 1), *args))
+        best = min(best, time.perf_counter() - start)
+    return compile_s, best, out
 
 
 def _fmt_rate(x: float) -> str:
