@@ -180,6 +180,17 @@ class MjxEnv(Environment):
         """The observation, float32 (obs_dim,), of ``data``."""
         raise NotImplementedError
 
+    def _before_substep(
+        self, model: mjx.Model, data: mjx.Data, params: MjxParams
+    ) -> tuple[mjx.Model, mjx.Data]:
+        """``(model, data)`` for the next ``mjx.step``, for what MuJoCo itself does not model.
+
+        The gymnasium envs need nothing; the swing-up adds Bullet's link damping and joint-limit
+        rule (``InvertedPendulumSwingup``).
+        """
+        del params
+        return model, data
+
     def _reward(
         self, data_before: mjx.Data, data: mjx.Data, ctrl: jax.Array, params: MjxParams
     ) -> tuple[jax.Array, jax.Array, dict[str, jax.Array]]:
@@ -278,7 +289,11 @@ class MjxEnv(Environment):
         model = self.mjx_model(params)
         ctrl = self.scale_action(action).astype(state.data.ctrl.dtype)
         data0 = state.data.replace(ctrl=ctrl)
-        data = jax.lax.fori_loop(0, self.frame_skip, lambda _, d: mjx.step(model, d), data0)
+
+        def substep(_, d):
+            return mjx.step(*self._before_substep(model, d, params))
+
+        data = jax.lax.fori_loop(0, self.frame_skip, substep, data0)
         reward, terminated, info = self._reward(state.data, data, ctrl, params)
         t = state.t + 1
         truncated = time_limit(t, self.horizon, terminated)
@@ -488,46 +503,83 @@ class InvertedDoublePendulum(MjxEnv):
 
 
 class InvertedPendulumSwingup(MjxEnv):
-    """PyBullet's ``InvertedPendulumSwingupBulletEnv-v0`` task on gymnasium's cart-pole model.
+    """PyBullet's ``InvertedPendulumSwingupBulletEnv-v0``, rebuilt in MJX to Bullet's physics.
 
     Task, as PyBullet's ``gym_pendulum_envs.py``/``robot_pendula.py``: the pole starts hanging
     down, angle ``3.1415 + U(-0.1, 0.1)`` with zero velocity and the cart at rest at 0; force
     ``100 * a`` on the cart; reward ``cos(theta)`` every step (after the step); never terminates;
     horizon 1000; obs (5,) ``[x, x_dot, cos(theta), sin(theta), theta_dot]``; control period
-    0.0165 s (PyBullet's ``timestep=0.0165, frame_skip=1``).
+    0.0165 s (PyBullet's ``timestep=0.0165, frame_skip=1``, one Bullet step per env step).
 
-    Model: gymnasium's ``inverted_pendulum.xml`` (rail, capsule cart on a slider limited to
-    [-1, 1] m, capsule pole of length 0.6 m, joint damping 1, RK4), changed at load time:
+    Model: PyBullet loads ``pybullet_data/mjcf/inverted_pendulum.xml``, which is gymnasium's
+    ``assets/inverted_pendulum.xml`` with the hinge unlimited. Bullet's MJCF importer does not
+    read everything MuJoCo would, so the MuJoCo model is changed at load time to what PyBullet
+    3.2.7 actually simulates (read back with ``getJointInfo``/``getDynamicsInfo``/
+    ``getPhysicsEngineParameters`` and matched step by step, see ``tests/test_envs_mjx.py``):
 
-    * the hinge's ``limited`` is set to false (gymnasium limits it to +-90 deg, which would make a
-      swing-up impossible; PyBullet's copy of the same file has ``limited="false"``);
-    * ``opt.timestep`` 0.02 -> 0.0165 with frame_skip 1, for PyBullet's control period;
-    * actions in [-1, 1] are the ``ctrl`` (gear 100 -> +-100 N, PyBullet's force range; the
-      model's own ``ctrlrange`` is +-3, i.e. +-300 N, which gymnasium's InvertedPendulum uses).
+    * the hinge is unlimited (gymnasium limits it to +-90 deg);
+    * joint damping 0 on slider and hinge: the importer ignores the XML's ``damping="1"``. With it,
+      no controller swings the pole up (a hinge damping of 1 N m s dissipates about as much power
+      as +-100 N on the cart can pump in);
+    * gravity 9.8 (PyBullet's scene), timestep 0.0165 s, semi-implicit Euler (Bullet's
+      integrator) instead of RK4;
+    * the pole's inertia about its COM is Bullet's (0.2664, 0.2665, 0.0267) kg m^2; the masses
+      (cart 10.47 kg, pole 5.02 kg, from the capsules at density 1000) already agree;
+    * Bullet's default link damping (``btMultiBody`` ``m_linearDamping = m_angularDamping = 0.04``):
+      every link feels ``-m v (k + k|v|)`` at its COM and ``-I w (k + k|w|)``, applied here as
+      ``xfrc_applied`` before each step (``_before_substep``); it slows the cart by ~5% at 3 m/s;
+    * the slider's +-1 m limit acts as Bullet's joint-limit constraint (``btMultiBodyJointLimit
+      Constraint`` under PyBullet's split impulse): within one step it sets the cart's velocity
+      into the limit to ``erp * depth / dt`` outwards (erp 0.2) if the cart is less than 0.04 m
+      beyond the limit, and to 0 (no push back) if deeper. In MuJoCo terms the limit is a
+      constraint of impedance 0.9999 with reference acceleration ``-v / dt - k * r``, ``k =
+      erp / dt^2`` or 0 by the depth at the start of the step (``jnt_solref`` set per step).
 
-    Known differences from PyBullet that remain: MuJoCo (RK4, soft slider limit, joint damping
-    1 on slider and hinge, gravity 9.81) instead of Bullet (gravity 9.8, its own integrator and
-    hard joint limits; whether its MJCF importer applies the joint damping was not checked). The
-    geometry (and hence the masses MuJoCo derives from it: cart ~10.5 kg, pole ~5.0 kg at
-    density 1000) is that of PyBullet's ``pybullet_data/mjcf/inverted_pendulum.xml``, which is the
-    same file apart from the hinge limit and the motor's ``ctrlrange``; the masses Bullet's MJCF
-    importer derives from it were not checked.
+    Actions in [-1, 1] are the ``ctrl`` (gear 100 -> +-100 N; the model's own ``ctrlrange`` of +-3,
+    i.e. +-300 N, is gymnasium's InvertedPendulum's).
     """
 
     env_name = "inverted_pendulum_swingup"
     xml_file = "inverted_pendulum.xml"
     frame_skip = 1
     timestep = 0.0165
+    gravity = 9.8
     max_force = 100.0
     init_angle = 3.1415  # PyBullet's value, not pi
     init_noise = 0.1
+    # Bullet's link-frame inertia of the pole (principal axes x, y (the hinge), z (the pole))
+    pole_inertia = (0.26639019844481543, 0.26653950154827094, 0.026650811429848154)
+    link_damping = 0.04  # btMultiBody's default linear and angular damping
+    limit_erp = 0.2  # btContactSolverInfo's default m_erp
+    split_depth = 0.04  # PyBullet's splitImpulsePenetrationThreshold (-0.04), as a depth
 
     def _load_model(self) -> mujoco.MjModel:
         with mujoco_warnings_to_python():
             spec = mujoco.MjSpec.from_file(gymnasium_xml_path(self.xml_file))
             spec.joint("hinge").limited = mujoco.mjtLimited.mjLIMITED_FALSE
+            for joint in ("hinge", "slider"):
+                spec.joint(joint).damping = np.zeros(3)  # (MuJoCo 3.17: a 3-vector)
             spec.option.timestep = self.timestep
-            return spec.compile()
+            spec.option.gravity = [0.0, 0.0, -self.gravity]
+            spec.option.integrator = mujoco.mjtIntegrator.mjINT_EULER
+            model = spec.compile()
+        pole = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "pole")
+        slider = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "slider")
+        # the pole's inertial frame is its geometric one turned about the hinge axis (y) only,
+        # so the diagonal keeps Bullet's axis order
+        model.body_inertia[pole] = self.pole_inertia
+        model.jnt_solref[slider] = self._limit_solref(0.0)
+        model.jnt_solimp[slider] = [0.9999, 0.9999, 0.001, 0.5, 2.0]
+        return model
+
+    def _limit_solref(self, depth):
+        """The slider limit's ``solref`` (direct ``(-k, -b)``) when the cart is ``depth`` m beyond
+        it (<= 0 inside): ``b = 1/dt`` stops it; ``k = erp/dt^2`` pushes back if shallower than
+        ``split_depth``. (k is never exactly 0: MuJoCo reads ``solref[0] == 0`` as unset.)
+        """
+        dt = self.timestep
+        k = jnp.where(depth < self.split_depth, self.limit_erp / dt**2, 1e-9)
+        return jnp.stack([-k, jnp.full_like(k, -1.0 / dt)])
 
     def _action_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         gear = float(self.model.actuator_gear[0, 0])
@@ -538,6 +590,39 @@ class InvertedPendulumSwingup(MjxEnv):
         u = _uniform(key, (), self.init_noise)
         qpos = jnp.stack([jnp.zeros((), jnp.float32), self.init_angle + u])
         return qpos, jnp.zeros((self.model.nv,), jnp.float32)
+
+    def _before_substep(
+        self, model: mjx.Model, data: mjx.Data, params: MjxParams
+    ) -> tuple[mjx.Model, mjx.Data]:
+        """Bullet's limit rule for this step (``_limit_solref``) and link damping as
+        ``xfrc_applied`` (force at the COM, then torque; world frame).
+
+        Bodies: 1 the cart (slides along x), 2 the pole (turns by theta about y around the cart's
+        origin). The pole's COM sits at ``R_y(theta) @ body_ipos`` from the pivot, so its velocity
+        is ``(x_dot + theta_dot * r_z, 0, -theta_dot * r_x)``; the hinge axis is a principal axis,
+        so its angular damping is a y torque with inertia ``body_inertia[pole, 1]``.
+        """
+        k = self.link_damping
+        x_dot, theta, theta_dot = data.qvel[0], data.qpos[1], data.qvel[1]
+        px, _, pz = self.model.body_ipos[2]
+        c, s = jnp.cos(theta), jnp.sin(theta)
+        r_x, r_z = c * px + s * pz, -s * px + c * pz
+        zero = jnp.zeros_like(x_dot)
+        v_cart = jnp.stack([x_dot, zero, zero])
+        v_pole = jnp.stack([x_dot + theta_dot * r_z, zero, -theta_dot * r_x])
+
+        def drag(mass, v):
+            return -mass * v * (k + k * jnp.sqrt(jnp.sum(v * v)))
+
+        torque = -params.body_inertia[2, 1] * theta_dot * (k + k * jnp.abs(theta_dot))
+        xfrc = jnp.zeros_like(data.xfrc_applied)
+        xfrc = xfrc.at[1, :3].set(drag(params.body_mass[1], v_cart))
+        xfrc = xfrc.at[2, :3].set(drag(params.body_mass[2], v_pole))
+        xfrc = xfrc.at[2, 4].set(torque)
+        depth = jnp.abs(data.qpos[0]) - self.model.jnt_range[0, 1]
+        solref = self._limit_solref(depth).astype(model.jnt_solref.dtype)
+        data = data.replace(xfrc_applied=xfrc.astype(data.xfrc_applied.dtype))
+        return model.replace(jnt_solref=model.jnt_solref.at[0].set(solref)), data
 
     def _obs(self, data: mjx.Data) -> jax.Array:
         x, theta = data.qpos[0], data.qpos[1]
