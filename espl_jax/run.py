@@ -193,6 +193,8 @@ def finish(
             "wall_seconds_training": round(train_seconds, 1),
         },
         "jax_eval": per_seed[best]["jax_eval"],
+        # where "jax_eval" ran: JAX envs in JAX, host (Box2D) envs in gymnasium
+        "evaluated_in": "gymnasium" if trainer.on_host else "jax",
         "per_seed": per_seed,
     }
     if best in formulas:

@@ -7,7 +7,6 @@ import sys
 import time
 from pathlib import Path
 
-import envs
 from espl_jax import config as config_lib
 from espl_jax import run
 from espl_jax.cli import run_main
@@ -63,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
         print("  " + result["formula"].replace("\n", "\n  "))
     ev = result["jax_eval"]
     # Host (Box2D) envs are evaluated in gymnasium, JAX envs in JAX; an MLP has no formula.
-    where = "in gymnasium" if envs.is_host(config.env) else "in JAX"
+    where = "in gymnasium" if result["evaluated_in"] == "gymnasium" else "in JAX"
     what = "exported policy" if "formula" in result else "deterministic policy"
     print(f"{what}, {ev['episodes']} episodes {where}: {ev['mean']:.2f} ± {ev['std']:.2f}")
     if "reference_eval" in result:

@@ -214,6 +214,7 @@ def test_host_run_resumes_from_its_checkpoint(stopped_mlp_run, tmp_path):
     record = json.loads((run_dir / run.EVAL_FILE).read_text())
     assert record == result and record["env"] == "lunarlander" and record["actor"] == "mlp"
     assert record["jax_eval"]["episodes"] == cfg.eval_episodes
+    assert record["evaluated_in"] == "gymnasium"
     assert record["training"]["env_steps"] == cfg.total_env_steps
     assert "formula" not in record and not (run_dir / run.POLICY_FILE).exists()
     assert (run_dir / run.CURVE_FILE).read_bytes().startswith(b"\x89PNG\r\n\x1a\n")

@@ -108,6 +108,7 @@ def test_full_run_writes_every_artifact(full_run):
     best = record["best_seed"]
     assert best in range(cfg.seeds)
     assert record["jax_eval"]["episodes"] == cfg.eval_episodes
+    assert record["evaluated_in"] == "jax"
     assert {"mean", "std", "min", "max"} <= set(record["jax_eval"])
     assert record["training"]["env_steps"] == cfg.total_env_steps
     assert record["training"]["iterations"] == cfg.iterations
