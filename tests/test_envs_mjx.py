@@ -465,7 +465,7 @@ def test_swingup_model_reward_obs_and_limits():
 
 @functools.cache
 def _pybullet_swingup() -> dict:
-    """PyBullet 3.2.7's own swing-up env, recorded by ``data/record_pybullet_swingup.py``."""
+    """PyBullet 3.2.7's own swing-up env, recorded by ``benchmarks/pybullet_swingup.py record``."""
     path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data", "pybullet_swingup.json")
     with open(path) as f:
         return json.load(f)
@@ -494,7 +494,7 @@ def _pybullet_errors(name: str) -> tuple[np.ndarray, np.ndarray]:
 def test_swingup_matches_pybullet(name):
     """MJX against PyBullet's own InvertedPendulumSwingupBulletEnv, 200 steps of its states.
 
-    Rollouts recorded from PyBullet 3.2.7 (``data/record_pybullet_swingup.py``): the paper's
+    Rollouts recorded from PyBullet 3.2.7 (``benchmarks/pybullet_swingup.py record``): the paper's
     formula in closed loop, a sine and uniform random actions. Re-synced to PyBullet's state
     before every step: within ``TOL`` while the cart starts the step inside its rail (observed
     <= 9e-7), within ``PYBULLET_LIMIT_TOL`` in the steps that start beyond it, where the

@@ -1,12 +1,14 @@
-"""Records PyBullet's InvertedPendulumSwingupBulletEnv-v0 for ``tests/test_envs_mjx.py``.
+"""PyBullet's own InvertedPendulumSwingupBulletEnv-v0: record the test fixture, evaluate a policy.
 
-PyBullet is not a dependency of espl-jax (its ``pybullet_envs`` needs the unmaintained ``gym``), so
-the reference trajectories are recorded once, by this script, into ``pybullet_swingup.json``:
+PyBullet is not a dependency of espl-jax (its ``pybullet_envs`` needs the unmaintained ``gym``),
+so this script runs in a venv of its own:
 
     python3 -m venv /tmp/pb && /tmp/pb/bin/pip install pybullet==3.2.7 gym==0.26.2 numpy
-    /tmp/pb/bin/python tests/data/record_pybullet_swingup.py
+    /tmp/pb/bin/python benchmarks/pybullet_swingup.py record
+    /tmp/pb/bin/python benchmarks/pybullet_swingup.py evaluate runs/NAME/policy.py [--episodes 100]
 
-It records, from PyBullet's own env class (``pybullet_envs.gym_pendulum_envs``):
+``record`` writes ``tests/data/pybullet_swingup.json``, which ``tests/test_envs_mjx.py`` checks
+the MJX swing-up against:
 
 * ``rollouts``: three 200-step rollouts, each the joint state ``qpos = [x, theta]``,
   ``qvel = [x_dot, theta_dot]`` before every step and after the last, the normalized actions and
@@ -19,8 +21,13 @@ It records, from PyBullet's own env class (``pybullet_envs.gym_pendulum_envs``):
 The formula is printed in Table 3 as ``4.33 sin(0.17 s1 + 0.14 s2 + 0.49 s3 + 1.76 s4 + 0.33 s4
 - 0.29) - 0.65``; the second ``s4`` is read as ``s5`` (theta_dot), the only reading that swings
 the pole up (with ``s4`` twice it scores about -940 here), and the action is its tanh.
+
+``evaluate`` plays an exported ``policy.py`` (``act(obs) -> action``) for 1000-step episodes on
+env seeds 1000, 1001, ... and prints the mean return.
 """
 
+import argparse
+import importlib.util
 import json
 from pathlib import Path
 
@@ -83,31 +90,59 @@ def _round(tree):
     return float(f"{tree:.9g}") if isinstance(tree, float) else tree
 
 
-def main():
-    env = InvertedPendulumSwingupBulletEnv()
+def episode_return(env, policy, seed):
+    env.seed(seed)
+    obs, total = env.reset(), 0.0
+    for _ in range(1000):
+        obs, r, _, _ = env.step(np.asarray(policy(obs), np.float64))
+        total += r
+    return total
+
+
+def record(env):
     t = np.arange(STEPS)
     rng = np.random.default_rng(0)
     sine = 0.8 * np.sin(2 * np.pi * t / 80.0)[:, None]
     out = {
-        "source": "pybullet 3.2.7, pybullet_envs InvertedPendulumSwingupBulletEnv (this script)",
+        "source": "pybullet 3.2.7, pybullet_envs InvertedPendulumSwingupBulletEnv "
+        "(benchmarks/pybullet_swingup.py record)",
         "rollouts": {
             "paper": rollout(env, policy=paper_formula),
             "sine": rollout(env, actions=sine, theta0=3.1915),
             "random": rollout(env, actions=rng.uniform(-1, 1, (STEPS, 1)), theta0=3.1915),
         },
     }
-    returns = []
-    for seed in range(EPISODES):
-        env.seed(seed)
-        obs, total = env.reset(), 0.0
-        for _ in range(1000):
-            obs, r, _, _ = env.step(paper_formula(obs))
-            total += r
-        returns.append(total)
+    returns = [episode_return(env, paper_formula, seed) for seed in range(EPISODES)]
     out["paper_returns"] = returns
-    path = Path(__file__).with_name("pybullet_swingup.json")
+    path = Path(__file__).resolve().parents[1] / "tests" / "data" / "pybullet_swingup.json"
     path.write_text(json.dumps(_round(out), separators=(",", ":")))
     print(f"wrote {path}; paper formula {np.mean(returns):.2f} +- {np.std(returns):.2f}")
+
+
+def evaluate(env, policy_file, episodes):
+    spec = importlib.util.spec_from_file_location("policy", policy_file)
+    policy = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(policy)
+    returns = [episode_return(env, policy.act, 1000 + i) for i in range(episodes)]
+    print(
+        f"{policy_file} in PyBullet's InvertedPendulumSwingupBulletEnv, {episodes} episodes: "
+        f"{np.mean(returns):.2f} +- {np.std(returns):.2f} (min {np.min(returns):.2f})"
+    )
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    sub.add_parser("record", help="write tests/data/pybullet_swingup.json")
+    ev = sub.add_parser("evaluate", help="play an exported policy.py")
+    ev.add_argument("policy", help="path of an exported policy.py")
+    ev.add_argument("--episodes", type=int, default=100)
+    args = parser.parse_args()
+    env = InvertedPendulumSwingupBulletEnv()
+    if args.command == "record":
+        record(env)
+    else:
+        evaluate(env, args.policy, args.episodes)
 
 
 if __name__ == "__main__":
