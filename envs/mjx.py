@@ -518,9 +518,9 @@ class InvertedPendulumSwingup(MjxEnv):
     ``getPhysicsEngineParameters`` and matched step by step, see ``tests/test_envs_mjx.py``):
 
     * the hinge is unlimited (gymnasium limits it to +-90 deg);
-    * joint damping 0 on slider and hinge: the importer ignores the XML's ``damping="1"``. With it,
-      no controller swings the pole up (a hinge damping of 1 N m s dissipates about as much power
-      as +-100 N on the cart can pump in);
+    * joint damping 0 on slider and hinge: the importer ignores the XML's ``damping="1"``. With
+      it, neither the paper's formula nor a hand-written energy pump swung the pole up (a hinge
+      damping of 1 N m s dissipates about as much power as +-100 N on the cart can pump in);
     * gravity 9.8 (PyBullet's scene), timestep 0.0165 s, semi-implicit Euler (Bullet's
       integrator) instead of RK4;
     * the pole's inertia about its COM is Bullet's (0.2664, 0.2665, 0.0267) kg m^2; the masses
