@@ -193,7 +193,7 @@ def _bullet_rules(model, data, k=0.04, erp=0.2, split_depth=0.04):
 
 
 # what an env changes before each mj_step, beyond the model (see ``MjxEnv._before_substep``)
-HOST_FORCES = {"inverted_pendulum_swingup": _bullet_rules}
+HOST_BEFORE_STEP = {"inverted_pendulum_swingup": _bullet_rules}
 
 
 def _cpu_model(env, params: MjxParams) -> mujoco.MjModel:
@@ -211,7 +211,7 @@ def _cpu_rollout(env, model, qpos0, qvel0, ctrls):
         dict of (T, ...) arrays: ``qpos``, ``qvel`` after each step, and ``sync``, a dict of the
         ``qpos``, ``qvel`` and ``qacc_warmstart`` before each step.
     """
-    model = copy.copy(model)  # HOST_FORCES may edit it
+    model = copy.copy(model)  # HOST_BEFORE_STEP may edit it
     data = mujoco.MjData(model)
     data.qpos[:], data.qvel[:] = qpos0, qvel0
     keys = ("qpos", "qvel", "qacc_warmstart")
@@ -221,7 +221,7 @@ def _cpu_rollout(env, model, qpos0, qvel0, ctrls):
             before[k].append(getattr(data, k).copy())
         data.ctrl[:] = ctrl
         for _ in range(env.frame_skip):
-            HOST_FORCES.get(env.name, lambda model, data: None)(model, data)
+            HOST_BEFORE_STEP.get(env.name, lambda model, data: None)(model, data)
             mujoco.mj_step(model, data)
         for k in after:
             after[k].append(getattr(data, k).copy())
