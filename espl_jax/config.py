@@ -7,6 +7,7 @@ per-environment ones (Table 6) and a budget that fits a laptop CPU.
 from __future__ import annotations
 
 import dataclasses
+import math
 import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
@@ -15,7 +16,11 @@ from typing import Any
 
 import yaml
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+# The shipped per-env configs. In the source tree ``espl_jax/configs`` is a link to the top-level
+# ``configs/``; in a wheel it is a real directory (package data), so ``--env NAME`` loads the same
+# files from any install.
+CONFIG_DIR = Path(__file__).resolve().parent / "configs"
+DEFAULT_ENV = "cartpole"
 
 
 class UserError(Exception):
@@ -109,6 +114,14 @@ _POSITIVE_INT = (
     "eval_episodes",
 )
 _UNIT_INTERVAL = ("gamma", "polyak", "target_l0_ratio", "target_temperature")
+_POSITIVE_FLOAT = (
+    "learning_rate",
+    "actor_learning_rate",
+    "probs_learning_rate",
+    "grad_clip",
+    "reward_scale",
+)
+_NON_NEGATIVE_FLOAT = ("penalty_scale", "select_scale", "bias_l1_scale")
 
 
 def _validate(c: Config) -> None:
@@ -128,6 +141,9 @@ def _validate(c: Config) -> None:
         elif expected is float:
             if isinstance(value, bool) or not isinstance(value, int | float):
                 raise UserError(f"config: {f.name} must be a number, got {value!r}")
+            # Every check below is written so that NaN fails it, but say what is wrong.
+            if not math.isfinite(value):
+                raise UserError(f"config: {f.name} must be a finite number, got {value!r}")
         elif expected is int:
             if isinstance(value, bool) or not isinstance(value, int):
                 raise UserError(f"config: {f.name} must be an integer, got {value!r}")
@@ -138,32 +154,33 @@ def _validate(c: Config) -> None:
             raise UserError(
                 f"config: {name} must be one of {', '.join(choices)}, got {getattr(c, name)!r}"
             )
+    if not 0 <= c.seed < 2**31:
+        raise UserError(f"config: seed must be in [0, 2**31), got {c.seed!r}")
     for name in _POSITIVE_INT:
-        if getattr(c, name) <= 0:
+        if not getattr(c, name) > 0:
             raise UserError(f"config: {name} must be positive, got {getattr(c, name)!r}")
     if not 0.0 <= c.exploration_correlation < 1.0:
         raise UserError(
             f"config: exploration_correlation must be in [0, 1), got {c.exploration_correlation!r}"
         )
-    if c.reference_eval_episodes < 0:
-        raise UserError("config: reference_eval_episodes must be >= 0")
+    if not c.reference_eval_episodes >= 0:
+        raise UserError(
+            f"config: reference_eval_episodes must be >= 0, got {c.reference_eval_episodes!r}"
+        )
     for name in _UNIT_INTERVAL:
         if not 0.0 < getattr(c, name) <= 1.0:
             raise UserError(f"config: {name} must be in (0, 1], got {getattr(c, name)!r}")
-    for name in (
-        "learning_rate",
-        "actor_learning_rate",
-        "probs_learning_rate",
-        "grad_clip",
-        "reward_scale",
-    ):
+    for name in _POSITIVE_FLOAT:
         if not getattr(c, name) > 0:
             raise UserError(f"config: {name} must be > 0, got {getattr(c, name)!r}")
-    for name in ("penalty_scale", "select_scale", "bias_l1_scale"):
-        if getattr(c, name) < 0:
+    for name in _NON_NEGATIVE_FLOAT:
+        if not getattr(c, name) >= 0:
             raise UserError(f"config: {name} must be >= 0, got {getattr(c, name)!r}")
     if c.buffer_size < c.steps_per_iteration:
-        raise UserError("config: buffer_size must be at least steps_per_iteration")
+        raise UserError(
+            f"config: buffer_size ({c.buffer_size}) must be at least steps_per_iteration "
+            f"({c.steps_per_iteration})"
+        )
 
 
 def _field_type(f: dataclasses.Field) -> type:
@@ -228,21 +245,57 @@ def env_config_path(env: str) -> Path:
     return CONFIG_DIR / f"{env}.yaml"
 
 
-def resolve(env: str, config_file: str | Path | None = None, **overrides: Any) -> Config:
-    """Defaults < configs/<env>.yaml < ``config_file`` < command-line overrides (None = unset)."""
-    values: dict[str, Any] = {}
-    default_file = env_config_path(env)
-    if default_file.exists():
-        values.update(load_yaml(default_file))
-    if config_file is not None:
-        values.update(load_yaml(config_file))
-    values["env"] = env
+def resolve(
+    env: str | None = None, config_file: str | Path | None = None, **overrides: Any
+) -> Config:
+    """The run's config: defaults < ``configs/ENV.yaml`` < ``config_file`` < ``overrides``.
+
+    The env comes from ``env`` (the ``--env`` flag), else from the file's ``env`` key, else
+    ``DEFAULT_ENV``; a flag and a file that name different envs are an error. Every known env
+    ships a config: a missing one is an error, never a silent fall-back to the defaults (which are
+    the paper's common hyperparameters, not a laptop budget). ``overrides`` set to None are unset.
+
+    Raises:
+        UserError: unknown env, conflicting envs, missing or malformed files, bad values.
+    """
+    file_values = load_yaml(config_file) if config_file is not None else {}
+    file_env = file_values.get("env")
+    if file_env is not None and not isinstance(file_env, str):
+        raise UserError(f"config: env must be a string, got {file_env!r} in {config_file}")
+    if env is not None and file_env is not None and env != file_env:
+        raise UserError(
+            f"--env {env} and the env of {config_file} ({file_env}) disagree; "
+            "give one of them, or make them the same"
+        )
+    name = env or file_env or DEFAULT_ENV
+    _check_known_env(name)
+    default_file = env_config_path(name)
+    if not default_file.is_file():
+        raise UserError(
+            f"no shipped config for env {name!r}: {default_file} is missing "
+            "(a broken install? every trainable env ships configs/ENV.yaml)"
+        )
+    values = load_yaml(default_file)
+    values.update(file_values)
     values.update({k: v for k, v in overrides.items() if v is not None})
+    values["env"] = name
     return from_mapping(values)
 
 
+def _check_known_env(name: str) -> None:
+    import envs
+
+    if name not in envs.KNOWN_ENVS:
+        raise UserError(f"unknown environment {name!r}; known: {', '.join(envs.KNOWN_ENVS)}")
+
+
+def dump(config: Config) -> str:
+    """The config as YAML text (what config.yaml holds)."""
+    return yaml.safe_dump(config.to_dict(), sort_keys=False)
+
+
 def save(config: Config, path: str | Path) -> None:
-    Path(path).write_text(yaml.safe_dump(config.to_dict(), sort_keys=False))
+    Path(path).write_text(dump(config))
 
 
 def load(path: str | Path) -> Config:

@@ -20,27 +20,46 @@ def parser() -> argparse.ArgumentParser:
         "selector). Defaults come from configs/ENV.yaml; the run directory receives the config, "
         "metrics, a learning curve, checkpoints, the formula, policy.py and eval.json.",
     )
-    p.add_argument("--env", default="cartpole", help="environment name (default: cartpole)")
+    p.add_argument(
+        "--env",
+        help="environment name (default: the --config file's env, else cartpole); "
+        "see the README for the list",
+    )
     p.add_argument("--seeds", type=int, help="independent runs vmapped together; best is kept")
     p.add_argument("--iterations", type=int, help="training iterations (collect + update)")
-    p.add_argument("--config", help="YAML file overriding configs/ENV.yaml")
+    p.add_argument(
+        "--config",
+        help="YAML file overriding configs/ENV.yaml (precedence: defaults < configs/ENV.yaml < "
+        "--config < flags); it may set env",
+    )
     p.add_argument("--actor", choices=["symbolic", "mlp"], help="symbolic (ESPL) or mlp (SAC)")
     p.add_argument("--seed", type=int, help="base random seed")
     p.add_argument("--out", help="run directory (default: runs/ENV-ACTOR-TIMESTAMP)")
-    p.add_argument("--resume", metavar="RUN_DIR", help="continue a run from its last checkpoint")
+    p.add_argument(
+        "--resume",
+        metavar="RUN_DIR",
+        help="continue a run from its last checkpoint with its saved config; only --iterations "
+        "(to extend it) and --no-progress may be given with it",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
+
+
+# Flags that define a run; on --resume the run's saved config defines it instead.
+RUN_DEFINING_FLAGS = ("env", "seeds", "config", "actor", "seed", "out")
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     if args.resume:
+        given = [f"--{name}" for name in RUN_DEFINING_FLAGS if getattr(args, name) is not None]
+        if given:
+            raise UserError(
+                f"--resume continues a run with its saved config; {', '.join(given)} cannot be "
+                "changed on resume (only --iterations and --no-progress can)"
+            )
         run_dir = Path(args.resume)
-        if not (run_dir / "config.yaml").is_file():
-            raise UserError(f"cannot resume: {run_dir} is not a run directory (no config.yaml)")
-        config = config_lib.load(run_dir / "config.yaml")
-        if args.iterations is not None:
-            config = config_lib.from_mapping({"iterations": args.iterations}, base=config)
+        config = run.resume_config(run_dir, iterations=args.iterations)
     else:
         config = config_lib.resolve(
             args.env,
@@ -50,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
             actor=args.actor,
             seed=args.seed,
         )
-        run_dir = Path(args.out) if args.out else run.default_run_dir(config)
+        run_dir = Path(args.out) if args.out else run.new_run_dir(config)
     started = time.perf_counter()
     result = run.train(
         config, run_dir, resume=bool(args.resume), show_progress=not args.no_progress
