@@ -152,6 +152,9 @@ _REFERENCES: dict[str, Callable[..., gymnasium.Env]] = {
 }
 
 
+REFERENCE_ENVS: tuple[str, ...] = tuple(sorted(_REFERENCES))
+
+
 def reference_env(name: str, **kwargs) -> gymnasium.Env:
     """Builds the host-side reference implementation of a JAX env.
 

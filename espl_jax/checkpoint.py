@@ -10,6 +10,7 @@ from typing import Any
 import jax
 import orbax.checkpoint as ocp
 
+from espl_jax import faults
 from espl_jax.config import UserError
 
 KEEP = 2  # the newest and the one before it: a crash while writing never loses the last good one
@@ -17,12 +18,16 @@ KEEP = 2  # the newest and the one before it: a crash while writing never loses 
 
 def manager(directory: str | Path) -> ocp.CheckpointManager:
     options = ocp.CheckpointManagerOptions(max_to_keep=KEEP, create=True)
-    return ocp.CheckpointManager(Path(directory).resolve(), options=options)
+    # The handler is named so that a fresh manager can read a checkpoint's metadata (shapes).
+    return ocp.CheckpointManager(
+        Path(directory).resolve(), options=options, item_handlers=ocp.StandardCheckpointHandler()
+    )
 
 
 def save(mngr: ocp.CheckpointManager, iteration: int, state: Any) -> None:
     """Write the state under ``iteration`` and wait until it is committed to disk."""
     mngr.save(iteration, args=ocp.args.StandardSave(_without_empty(state)), force=True)
+    faults.kill_point(f"checkpoint-write:{iteration}")
     mngr.wait_until_finished()
 
 
@@ -36,6 +41,12 @@ def _without_empty(tree: Any) -> Any:
 def restore_latest(directory: str | Path, like: Any) -> tuple[int, Any]:
     """The newest complete checkpoint in ``directory``, restored into the structure of ``like``.
 
+    Args:
+        directory: the checkpoint directory.
+        like: the pytree to restore into, or a function ``like(stored)`` of the checkpoint's
+            metadata tree (leaves with ``.shape``; nested dicts and lists) returning it, for a
+            checkpoint whose array shapes differ from what today's config would build.
+
     Raises:
         UserError: no checkpoint, or one that cannot be read (corrupt or from another config).
     """
@@ -47,16 +58,23 @@ def restore_latest(directory: str | Path, like: Any) -> tuple[int, Any]:
         step = mngr.latest_step()
         if step is None:
             raise UserError(f"no complete checkpoint in {directory}")
-        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, _without_empty(like))
         try:
+            if callable(like):
+                like = like(mngr.item_metadata(step).tree)
+            abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, _without_empty(like))
             state = mngr.restore(step, args=ocp.args.StandardRestore(abstract))
         except Exception as err:  # orbax raises many types for unreadable data
             raise UserError(
                 f"checkpoint {directory / str(step)} is unreadable ({type(err).__name__}: "
-                f"{str(err).splitlines()[0][:200]}); it may be corrupt or from another config"
+                f"{_first_line(err)}); it may be corrupt or from another config"
             ) from None
     state = jax.tree.map(lambda r, t: t if r is None else r, state, like, is_leaf=_is_none)
     return step, state
+
+
+def _first_line(err: Exception) -> str:
+    lines = [line for line in str(err).splitlines() if line.strip()]
+    return (lines[0] if lines else "no message")[:200]
 
 
 def _is_none(x: Any) -> bool:

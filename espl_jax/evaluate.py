@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
-from espl_jax import config as config_lib
 from espl_jax import evaluation, run
 from espl_jax.cli import run_main
 from espl_jax.config import UserError
@@ -27,16 +25,19 @@ def main(argv: list[str] | None = None) -> int:
     if args.episodes <= 0:
         raise UserError("--episodes must be positive")
     run_dir = Path(args.run_dir)
-    if not (run_dir / "config.yaml").is_file():
-        raise UserError(f"{run_dir} is not a run directory (no config.yaml)")
-    config = config_lib.load(run_dir / "config.yaml")
+    config = run.saved_config(run_dir)
+    record = run.read_eval(run_dir) or {}  # read first: a corrupt eval.json is never overwritten
+    if not evaluation.has_reference(config.env):
+        raise UserError(
+            f"{config.env} has no reference environment to evaluate policy.py in "
+            f"(known: {', '.join(evaluation.REFERENCE_ENVS)}); its eval.json holds the JAX "
+            "evaluation of the same formula"
+        )
     policy = evaluation.load_policy(run_dir / run.POLICY_FILE)
     returns = evaluation.rollout_returns(policy.act, config.env, args.episodes, args.seed)
     summary = evaluation.summary(returns)
-    eval_path = run_dir / run.EVAL_FILE
-    record = json.loads(eval_path.read_text()) if eval_path.is_file() else {}
     record["reference_eval"] = {**summary, "first_seed": args.seed}
-    eval_path.write_text(json.dumps(record, indent=2) + "\n")
+    run.write_json(run_dir / run.EVAL_FILE, record)
     print(
         f"{config.env}: {summary['mean']:.2f} ± {summary['std']:.2f} over "
         f"{summary['episodes']} episodes (min {summary['min']:.2f}, max {summary['max']:.2f})"

@@ -9,7 +9,7 @@ from types import ModuleType
 
 import numpy as np
 
-from envs.reference import reference_env
+from envs.reference import REFERENCE_ENVS, reference_env
 from espl_jax.config import UserError
 
 
@@ -27,6 +27,11 @@ def load_policy(path: str | Path) -> ModuleType:
     if not callable(getattr(module, "act", None)):
         raise UserError(f"{path} has no act(obs) function")
     return module
+
+
+def has_reference(env_name: str) -> bool:
+    """Whether ``env_name`` has a host-side reference env to evaluate a policy.py in."""
+    return env_name in REFERENCE_ENVS
 
 
 def rollout_returns(

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -28,13 +27,22 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, help="which seed (default: the best one in eval.json)")
     p.add_argument("--output", "-o", help="write to this file instead of standard output")
     args = p.parse_args(argv)
-    trainer, state, _ = run.load_run(args.run_dir)
-    if trainer.sac.actor.symbolic is None:
+    config = run.saved_config(args.run_dir)
+    if config.actor != "symbolic":
         raise UserError(f"{args.run_dir} trained an MLP actor: there is no formula to export")
+    trainer, state, _ = run.load_run(args.run_dir)
     seed = args.seed
     if seed is None:
-        eval_path = Path(args.run_dir) / run.EVAL_FILE
-        seed = json.loads(eval_path.read_text())["best_seed"] if eval_path.is_file() else 0
+        try:
+            record = run.read_eval(args.run_dir)
+        except UserError as err:
+            raise UserError(f"{err}; give --seed to export a seed without it") from None
+        seed = record.get("best_seed", 0) if record else 0
+        if not isinstance(seed, int) or isinstance(seed, bool):
+            raise UserError(
+                f"{Path(args.run_dir) / run.EVAL_FILE} has a bad best_seed ({seed!r}); "
+                "give --seed to export a seed without it"
+            )
     if not 0 <= seed < trainer.config.seeds:
         raise UserError(f"--seed must be in [0, {trainer.config.seeds - 1}]")
     actor = jax.tree.map(lambda x: np.asarray(x[seed]), state.actor)

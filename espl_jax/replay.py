@@ -70,3 +70,22 @@ def sample(buffer: ReplayBuffer, key: jax.Array, batch_size: int) -> Transition:
 def capacity_for(requested: int, chunk: int) -> int:
     """Smallest multiple of ``chunk`` that holds ``requested`` transitions."""
     return -(-requested // chunk) * chunk
+
+
+def resize(buffer: ReplayBuffer, capacity: int) -> ReplayBuffer:
+    """The same transitions in a buffer of another capacity (zero-padded or cut at the end).
+
+    Exact only for a buffer that has not wrapped (its entries are rows 0 … size−1, oldest first)
+    and fits: a run extended by ``--resume --iterations`` then holds exactly what a run planned
+    that long holds at the same iteration. The trainer sizes a buffer by the run's total env steps
+    (capped by ``buffer_size``), so a buffer whose capacity depends on ``iterations`` never wraps.
+    """
+    old = buffer.capacity
+
+    def fit(x):
+        if capacity <= old:
+            return x[:capacity]
+        return jnp.concatenate([x, jnp.zeros((capacity - old, *x.shape[1:]), x.dtype)])
+
+    size = jnp.minimum(buffer.size, capacity)
+    return ReplayBuffer(jax.tree.map(fit, buffer.data), size % capacity, size)

@@ -18,8 +18,11 @@ compiled ones (``chunk_runner``, ``evaluator``); the run directory is the same:
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import math
+import os
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -28,7 +31,7 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from espl_jax import checkpoint, evaluation, host
+from espl_jax import checkpoint, evaluation, faults, host, replay
 from espl_jax import config as config_lib
 from espl_jax import expression as ex
 from espl_jax.config import Config, UserError
@@ -49,8 +52,42 @@ class TrainingDiverged(UserError):
     """A loss became non-finite; the last good checkpoint is kept."""
 
 
-def default_run_dir(config: Config) -> Path:
-    return Path("runs") / f"{config.env}-{config.actor}-{time.strftime('%Y%m%d-%H%M%S')}"
+def new_run_dir(config: Config, root: str | Path = "runs") -> Path:
+    """A new, empty run directory ``runs/ENV-ACTOR-TIME[-N]``, created here.
+
+    ``mkdir`` is atomic, so two runs started in the same second get different directories
+    (the second one gets a ``-2`` suffix, and so on).
+    """
+    stem = f"{config.env}-{config.actor}-{time.strftime('%Y%m%d-%H%M%S')}"
+    Path(root).mkdir(parents=True, exist_ok=True)
+    for n in itertools.count(1):
+        path = Path(root) / (stem if n == 1 else f"{stem}-{n}")
+        try:
+            path.mkdir()
+            return path
+        except FileExistsError:
+            continue
+    raise AssertionError("unreachable")
+
+
+def saved_config(run_dir: str | Path) -> Config:
+    """The config a run directory was trained with (its config.yaml).
+
+    Raises:
+        UserError: not a run directory, or an unreadable config.yaml.
+    """
+    path = Path(run_dir) / "config.yaml"
+    if not path.is_file():
+        raise UserError(f"{run_dir} is not a run directory (no config.yaml)")
+    return config_lib.load(path)
+
+
+def resume_config(run_dir: str | Path, iterations: int | None = None) -> Config:
+    """The saved config of a run directory, with ``iterations`` changed to extend it."""
+    config = saved_config(run_dir)
+    if iterations is not None:
+        config = config_lib.from_mapping({"iterations": iterations}, base=config)
+    return config
 
 
 def train(
@@ -76,20 +113,30 @@ def train(
     run_dir = Path(run_dir)
     trainer = Trainer(config)
     trainer.env  # noqa: B018  (fail fast on an unknown env, before anything is written)
-    state = trainer.init_seeds()
-    start = 0
     if resume:
-        start, state = checkpoint.restore_latest(run_dir / CHECKPOINT_DIR, state)
+        start, state = restore(run_dir, trainer)
+        if start > config.iterations:
+            raise UserError(
+                f"{run_dir} has already trained {start} iterations; --iterations must be at "
+                f"least {start} to resume it"
+            )
         _truncate_metrics(run_dir / METRICS_FILE, start)
+        # Written after the checkpoint proved readable; a kill in between is harmless (the next
+        # resume re-reads the checkpoint and fits its buffer again).
+        if config_lib.load(run_dir / "config.yaml") != config:
+            _write_atomic(run_dir / "config.yaml", config_lib.dump(config))
     else:
         if (run_dir / CHECKPOINT_DIR).exists():
             raise UserError(f"{run_dir} already holds a run; use --resume {run_dir} or a new --out")
         run_dir.mkdir(parents=True, exist_ok=True)
-        config_lib.save(config, run_dir / "config.yaml")
+        _write_atomic(run_dir / "config.yaml", config_lib.dump(config))
         (run_dir / METRICS_FILE).write_text("")
+        state = trainer.init_seeds()
+        start = 0
 
     end = config.iterations if stop_after is None else min(stop_after, config.iterations)
     started = time.perf_counter()
+    warnings: list[str] = []
     run_chunk, close = chunk_runner(trainer)
     progress_eval = evaluator(trainer, config.progress_eval_episodes)
     bar = tqdm(
@@ -105,14 +152,21 @@ def train(
             length = min(config.chunk_iterations, end - iteration)
             new_state, metrics = run_chunk(state, length)
             metrics = jax.device_get(metrics)
-            _check_finite(metrics, iteration, run_dir, mngr.latest_step())
+            diverged = _non_finite(metrics, iteration)
+            if diverged:
+                # Keep the failing chunk's rows, so the user can see what diverged and how.
+                _append_metrics(run_dir / METRICS_FILE, metrics, None)
+                raise TrainingDiverged(diverged + "; " + _kept(run_dir, mngr.latest_step()))
             eval_keys = jax.vmap(jax.random.fold_in, (0, None))(new_state.key, 1)
             eval_returns = np.asarray(progress_eval(new_state.actor, eval_keys))
             _append_metrics(run_dir / METRICS_FILE, metrics, eval_returns)
             state = new_state
             iteration += length
             checkpoint.save(mngr, iteration, state)
-            plot_learning_curve(run_dir / METRICS_FILE, run_dir / CURVE_FILE, config.env)
+            warn_on_failure(
+                warnings, "learning-curve plot", plot_learning_curve,
+                run_dir / METRICS_FILE, run_dir / CURVE_FILE, config.env,
+            )  # fmt: skip
             bar.update(length)
             bar.set_postfix(
                 eval_return=f"{eval_returns.mean():.1f}",
@@ -122,7 +176,31 @@ def train(
     train_seconds = time.perf_counter() - started
     if iteration < config.iterations:
         return {}
-    return finish(trainer, state, run_dir, train_seconds)
+    return finish(trainer, state, run_dir, train_seconds, warnings)
+
+
+def restore(run_dir: str | Path, trainer: Trainer) -> tuple[int, TrainState]:
+    """The newest checkpoint of a run, fitted to ``trainer``'s config.
+
+    The replay buffer's capacity follows the run's total env steps (capped by ``buffer_size``),
+    so a run extended with ``--resume --iterations`` stored a smaller buffer than its new config
+    builds: it is restored with the stored capacity and padded (``replay.resize``; such a buffer
+    never wrapped), which makes the extended run equal to one planned that long from the start.
+    """
+    template = trainer.init_seeds()
+    capacity = trainer.buffer_capacity
+
+    def with_capacity(state: TrainState, n: int) -> TrainState:
+        if state.buffer.data.reward.shape[1] == n:  # [seeds, capacity]
+            return state
+        return state.replace(buffer=jax.vmap(lambda b: replay.resize(b, n))(state.buffer))
+
+    def like(stored: dict) -> TrainState:
+        stored_capacity = stored["buffer"]["data"]["reward"].shape[1]  # [seeds, capacity]
+        return with_capacity(template, stored_capacity)
+
+    step, state = checkpoint.restore_latest(Path(run_dir) / CHECKPOINT_DIR, like)
+    return step, with_capacity(state, capacity)
 
 
 def chunk_runner(trainer: Trainer) -> tuple[Any, contextlib.AbstractContextManager]:
@@ -155,10 +233,20 @@ def evaluator(trainer: Trainer, episodes: int):
 
 
 def finish(
-    trainer: Trainer, state: TrainState, run_dir: Path, train_seconds: float
+    trainer: Trainer,
+    state: TrainState,
+    run_dir: Path,
+    train_seconds: float,
+    warnings: list[str] | None = None,
 ) -> dict[str, Any]:
-    """Export every seed, pick the best by its exported formula's return, write the artifacts."""
+    """Export every seed, pick the best by its exported formula's return, write the artifacts.
+
+    eval.json, expression.txt and policy.py are written before the optional reference
+    evaluation (policy.py in gymnasium), so a failure there — or a kill — loses nothing: it
+    becomes a warning in the output and in eval.json.
+    """
     cfg, env = trainer.config, trainer.env
+    warnings = list(warnings or [])
     evaluate = evaluator(trainer, cfg.eval_episodes)
     # Select on one set of episodes, report on a fresh one, so the reported figure is unbiased.
     # A single seed needs no selection (for MJX envs it would double the final evaluation).
@@ -199,17 +287,58 @@ def finish(
     }
     if best in formulas:
         exprs = formulas[best]
-        (run_dir / EXPRESSION_FILE).write_text(ex.to_text(exprs) + "\n")
-        source = ex.to_python(exprs, env.obs_dim, env.action_low, env.action_high)
-        (run_dir / POLICY_FILE).write_text(source)
         result["formula"] = per_seed[best]["formula"]
         result["length"] = per_seed[best]["length"]
-        if cfg.reference_eval_episodes:
+        _write_atomic(run_dir / EXPRESSION_FILE, ex.to_text(exprs) + "\n")
+        source = ex.to_python(exprs, env.obs_dim, env.action_low, env.action_high)
+        _write_atomic(run_dir / POLICY_FILE, source)
+    _write_eval(run_dir, result, warnings)
+    faults.kill_point("export")
+    if best in formulas and cfg.reference_eval_episodes:
+
+        def reference() -> None:
             policy = evaluation.load_policy(run_dir / POLICY_FILE)
             returns = evaluation.rollout_returns(policy.act, cfg.env, cfg.reference_eval_episodes)
             result["reference_eval"] = evaluation.summary(returns)
-    (run_dir / EVAL_FILE).write_text(json.dumps(result, indent=2) + "\n")
+
+        warn_on_failure(warnings, "reference evaluation of policy.py", reference)
+        _write_eval(run_dir, result, warnings)
     return result
+
+
+def _write_eval(run_dir: Path, result: dict[str, Any], warnings: list[str]) -> None:
+    if warnings:
+        result["warnings"] = list(warnings)
+    write_json(run_dir / EVAL_FILE, result)
+
+
+def write_json(path: Path, record: dict[str, Any]) -> None:
+    """A run-directory JSON file, written atomically."""
+    _write_atomic(path, json.dumps(record, indent=2) + "\n")
+
+
+def warn_on_failure(warnings: list[str], what: str, fn, *args) -> bool:
+    """Run an optional step; a failure becomes a warning (printed and recorded), not a crash."""
+    try:
+        fn(*args)
+        return True
+    except Exception as err:  # an optional step may fail in any way; the run is kept
+        message = f"{what} failed: {type(err).__name__}: {_first_line(err)}"
+        print(f"warning: {message}", file=sys.stderr)
+        warnings.append(message)
+        return False
+
+
+def _first_line(err: Exception) -> str:
+    lines = [line for line in str(err).splitlines() if line.strip()]
+    return (lines[0] if lines else "no message")[:300]
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    """Write a file so that a kill leaves either the old or the new content, never a part."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
 
 
 def export_expressions(trainer: Trainer, actor_params: dict) -> list:
@@ -221,43 +350,62 @@ def export_expressions(trainer: Trainer, actor_params: dict) -> list:
 
 def load_run(run_dir: str | Path) -> tuple[Trainer, TrainState, int]:
     """Config, trainer and newest checkpointed state of a run directory."""
-    run_dir = Path(run_dir)
-    if not (run_dir / "config.yaml").is_file():
-        raise UserError(f"{run_dir} is not a run directory (no config.yaml)")
-    trainer = Trainer(config_lib.load(run_dir / "config.yaml"))
-    step, state = checkpoint.restore_latest(run_dir / CHECKPOINT_DIR, trainer.init_seeds())
+    trainer = Trainer(saved_config(run_dir))
+    step, state = restore(run_dir, trainer)
     return trainer, state, step
+
+
+def read_eval(run_dir: str | Path) -> dict[str, Any] | None:
+    """The run's eval.json, or None if it has none yet.
+
+    Raises:
+        UserError: eval.json exists but is not a JSON object (corrupt).
+    """
+    path = Path(run_dir) / EVAL_FILE
+    if not path.is_file():
+        return None
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise UserError(
+            f"{path} is unreadable ({type(err).__name__}: {_first_line(err)})"
+        ) from None
+    if not isinstance(record, dict):
+        raise UserError(f"{path} is unreadable (not a JSON object)")
+    return record
 
 
 # Metrics ---------------------------------------------------------------------------------------
 
 
-def _check_finite(metrics: dict, start: int, run_dir: Path, last_good: int | None) -> None:
+def _non_finite(metrics: dict, start: int) -> str | None:
+    """What diverged in a chunk (metric, iteration, seed), or None if every loss is finite."""
     for name in LOSS_KEYS:
         values = np.asarray(metrics[name])  # (seeds, iterations)
         bad = ~np.isfinite(values)
         if bad.any():
             seed, offset = map(int, np.argwhere(bad)[0])
-            kept = (
-                f"the last good checkpoint (iteration {last_good}) is kept in "
-                f"{run_dir / CHECKPOINT_DIR}"
-                if last_good is not None
-                else "no checkpoint had been written yet"
-            )
-            raise TrainingDiverged(
+            return (
                 f"training stopped: {name} became non-finite at iteration {start + offset + 1} "
-                f"(seed {seed}); {kept}"
+                f"(seed {seed}); that chunk's metrics are in {METRICS_FILE}"
             )
+    return None
 
 
-def _append_metrics(path: Path, metrics: dict, eval_returns: np.ndarray) -> None:
+def _kept(run_dir: Path, last_good: int | None) -> str:
+    if last_good is None:
+        return "no checkpoint had been written yet"
+    return f"the last good checkpoint (iteration {last_good}) is kept in {run_dir / CHECKPOINT_DIR}"
+
+
+def _append_metrics(path: Path, metrics: dict, eval_returns: np.ndarray | None) -> None:
     seeds, length = np.asarray(metrics["iteration"]).shape
     with path.open("a") as f:
         for i in range(length):
             for s in range(seeds):
                 row = {k: _scalar(v[s, i]) for k, v in metrics.items()}
                 row["seed"] = s
-                if i == length - 1:
+                if i == length - 1 and eval_returns is not None:
                     row["eval_return"] = float(eval_returns[s].mean())
                 f.write(json.dumps(row) + "\n")
 
@@ -268,14 +416,37 @@ def _scalar(x: Any) -> float | int:
 
 
 def _truncate_metrics(path: Path, iteration: int) -> None:
-    """Drop rows written after the checkpoint a resumed run restarts from."""
-    if path.exists():
-        rows = [r for r in read_metrics(path) if r["iteration"] <= iteration]
-        path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    """Drop rows written after the checkpoint a resumed run restarts from (and a partial last
+    line left by a kill mid-write)."""
+    rows = [r for r in read_metrics(path) if r["iteration"] <= iteration] if path.exists() else []
+    _write_atomic(path, "".join(json.dumps(r) + "\n" for r in rows))
 
 
 def read_metrics(path: str | Path) -> list[dict]:
-    return [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+    """The rows of a metrics.jsonl. A last line cut short (a kill mid-write) is skipped.
+
+    Raises:
+        UserError: a row other than the last is not valid JSON (the file is corrupt).
+    """
+    path = Path(path)
+    try:
+        lines = [line for line in path.read_text().splitlines() if line.strip()]
+    except (OSError, UnicodeDecodeError) as err:
+        raise UserError(
+            f"{path} is unreadable ({type(err).__name__}: {_first_line(err)})"
+        ) from None
+    rows = []
+    for number, line in enumerate(lines, 1):
+        try:
+            row = json.loads(line)
+            if not isinstance(row, dict) or "iteration" not in row:
+                raise ValueError("not a metrics row")
+        except ValueError as err:
+            if number == len(lines):
+                break  # cut short by a kill while it was written: the checkpoint is older
+            raise UserError(f"{path} is corrupt at line {number} ({_first_line(err)})") from None
+        rows.append(row)
+    return rows
 
 
 def plot_learning_curve(metrics_path: Path, out: Path, title: str) -> None:
