@@ -26,7 +26,7 @@ import yaml
 from conftest import TINY, TINY_MLP
 
 import envs
-from espl_jax import checkpoint, evaluation, replay, run
+from espl_jax import checkpoint, evaluation, faults, replay, run
 from espl_jax import config as config_lib
 from espl_jax.networks import tanh_gaussian_log_prob
 from espl_jax.sac import SAC, TrainState
@@ -225,7 +225,11 @@ def test_non_finite_loss_stops_and_keeps_the_last_good_checkpoint(stopped_run, t
     assert step == 2
     np.testing.assert_array_equal(state.iteration, [2, 2])
     assert all(np.isfinite(leaf).all() for leaf in jax.tree.leaves(state.critic))
-    assert max(r["iteration"] for r in run.read_metrics(run_dir / run.METRICS_FILE)) == 2
+    # The failing chunk's rows are kept, so the user can see what diverged.
+    rows = run.read_metrics(run_dir / run.METRICS_FILE)
+    assert max(r["iteration"] for r in rows) == 4
+    assert any(not math.isfinite(r["critic_loss"]) for r in rows if r["iteration"] == 3)
+    assert "critic_loss" in message or "q became" in message
     assert not (run_dir / run.EVAL_FILE).exists()
 
 
@@ -273,6 +277,98 @@ def test_resume_after_kill_9(tmp_path, jax_cache):
     assert run.read_metrics(killed / run.METRICS_FILE) == run.read_metrics(
         reference / run.METRICS_FILE
     )
+
+
+def _killed_at(point: str, tmp_path: Path, jax_cache: dict) -> Path:
+    """A CLI run of the tiny config SIGKILLed at a named kill point (espl_jax.faults)."""
+    config_file = tmp_path / "tiny.yaml"
+    config_lib.save(tiny(), config_file)
+    killed = tmp_path / "killed"
+    env = {**os.environ, **jax_cache, faults.ENV_VAR: point}
+    proc = subprocess.run(
+        [sys.executable, "-m", "espl_jax.train", "--no-progress", "--config", str(config_file),
+         "--out", str(killed)],
+        cwd=REPO, env=env, capture_output=True, text=True, timeout=1200,
+    )  # fmt: skip
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    return killed
+
+
+def _resume_cli(run_dir: Path, jax_cache: dict) -> None:
+    resumed = subprocess.run(
+        [sys.executable, "-m", "espl_jax.train", "--no-progress", "--resume", str(run_dir)],
+        cwd=REPO, env={**os.environ, **jax_cache}, capture_output=True, text=True, timeout=1200,
+    )  # fmt: skip
+    assert resumed.returncode == 0, resumed.stderr
+
+
+def _assert_same_finished_run(a: Path, b: Path) -> None:
+    step_a, state_a = load_params(a)
+    step_b, state_b = load_params(b)
+    assert step_a == step_b
+    assert_trees_equal(state_a, state_b)
+    assert run.read_metrics(a / run.METRICS_FILE) == run.read_metrics(b / run.METRICS_FILE)
+    for name in (run.EXPRESSION_FILE, run.POLICY_FILE):
+        assert (a / name).read_text() == (b / name).read_text()
+    records = [json.loads((d / run.EVAL_FILE).read_text()) for d in (a, b)]
+    for record in records:
+        del record["training"]["wall_seconds_training"]
+    assert records[0] == records[1]
+
+
+@pytest.mark.slow
+def test_kill_during_a_checkpoint_write_then_resume(full_run, tmp_path, jax_cache):
+    """SIGKILL while the second checkpoint (iteration 4) is written: it is never committed, the
+    resume restarts from iteration 2 and ends where the uninterrupted run ends."""
+    killed = _killed_at("checkpoint-write:4", tmp_path, jax_cache)
+    assert _completed_steps(killed / run.CHECKPOINT_DIR) == {2}
+    assert not (killed / run.EVAL_FILE).exists()
+    _resume_cli(killed, jax_cache)
+    _assert_same_finished_run(full_run[0], killed)
+
+
+def test_kill_during_the_final_export_then_resume(full_run, tmp_path, jax_cache):
+    """SIGKILL after eval.json, expression.txt and policy.py are written but before the reference
+    evaluation: the formula is already saved, and the resume completes the export."""
+    killed = _killed_at("export", tmp_path, jax_cache)
+    record = json.loads((killed / run.EVAL_FILE).read_text())
+    assert "formula" in record and "reference_eval" not in record
+    assert (killed / run.POLICY_FILE).is_file()
+    _resume_cli(killed, jax_cache)
+    _assert_same_finished_run(full_run[0], killed)
+
+
+def test_extending_a_finished_run_equals_a_run_planned_that_long(full_run, tmp_path):
+    """``--resume RUN --iterations 6`` on a finished 4-iteration run: the replay buffer (sized by
+    the run's total steps) grows, and the result is the 6-iteration run's, bit for bit."""
+    extended = tmp_path / "extended"
+    shutil.copytree(full_run[0], extended)
+    config = run.resume_config(extended, iterations=6)
+    assert config == tiny(iterations=6)
+    run.train(config, extended, resume=True, show_progress=False)
+    assert config_lib.load(extended / "config.yaml") == config
+    planned = tmp_path / "planned"
+    run.train(tiny(iterations=6), planned, show_progress=False)
+    _assert_same_finished_run(planned, extended)
+
+
+def test_failing_reference_evaluation_is_a_warning_and_loses_nothing(
+    full_run, tmp_path, monkeypatch
+):
+    run_dir = tmp_path / "run"
+    shutil.copytree(full_run[0], run_dir)
+
+    def broken(*args, **kwargs):
+        raise ModuleNotFoundError("No module named 'imageio'")
+
+    monkeypatch.setattr(evaluation, "rollout_returns", broken)
+    result = run.train(tiny(), run_dir, resume=True, show_progress=False)
+    assert "reference_eval" not in result
+    assert result["warnings"] == [
+        "reference evaluation of policy.py failed: ModuleNotFoundError: No module named 'imageio'"
+    ]
+    assert json.loads((run_dir / run.EVAL_FILE).read_text()) == result
+    assert (run_dir / run.POLICY_FILE).read_text() == (full_run[0] / run.POLICY_FILE).read_text()
 
 
 def _completed_steps(directory: Path) -> set[int]:
