@@ -32,8 +32,11 @@ class Config:
     """Everything a run needs. Sizes fix array shapes; the rest are plain hyperparameters."""
 
     env: str = "cartpole"
-    actor: str = "symbolic"  # "symbolic" (ESPL) or "mlp" (plain SAC, the neural baseline)
-    layout: str = "arranged"  # symbolic network layout: arranged | dense | plain
+    # Single-task envs: "symbolic" (ESPL) or "mlp" (plain SAC, the neural baseline). Meta-RL task
+    # families: "symbolic" (CSP), "pearl" (MLP policy on s ⊕ z) or "hyper" (hypernetwork policy).
+    actor: str = "symbolic"
+    # Symbolic network layout: arranged | dense | plain (ESPL); csp | csp_cond (CSP, App. C.2).
+    layout: str = "arranged"
     selector: str = "probabilistic"  # path selector: probabilistic | l1 (ablation)
     seed: int = 0
     seeds: int = 1  # independent runs, vmapped in one computation; the best formula is kept
@@ -76,6 +79,44 @@ class Config:
     schedule_iterations: int = 80  # t_s
     target_temperature: float = 0.2  # τ_t
 
+    # SAC's entropy temperature: tuned towards −|A| from ``alpha`` (ESPL), or fixed at ``alpha``
+    # (the authors' CSP code and PEARL fix it; with reward scale 5, as there).
+    auto_alpha: bool = True
+    alpha: float = 1.0
+
+    # Meta-RL: CSP, PEARL and Hyper (paper §4, Algorithm 2, App. C.2, D); single-task runs
+    # ignore these. Sizes are the paper's and the authors' code's.
+    task_seed: int = 0  # the train/test task sets are drawn from this seed (saved in tasks.json)
+    latent_dim: int = 5
+    encoder_hidden: tuple[int, ...] = (200, 200, 200)
+    generator_hidden: tuple[int, ...] = (64, 64)  # Φ and Ψ, one MLP per action dimension
+    pearl_hidden: tuple[int, ...] = (300, 300, 300)
+    hyper_policy_hidden: int = 256
+    kl_weight: float = 0.1  # β: PEARL's and the authors' code (the paper's table says 1)
+    meta_batch: int = 10  # tasks per gradient step, sampled with replacement
+    context_batch: int = 100  # context transitions per task, from its encoder buffer
+    # Collection (PEARL's rl_algorithm): before the first iteration every training task gets
+    # initial_steps with z from the prior; each iteration visits tasks_per_iteration tasks:
+    # their encoder buffers are cleared, prior_steps with prior z go to both buffers, then
+    # posterior_steps with z from the posterior of that fresh context go to the RL buffer only.
+    initial_steps: int = 2000
+    tasks_per_iteration: int = 5
+    prior_steps: int = 400
+    posterior_steps: int = 600
+    task_buffer_size: int = 100_000  # RL buffer capacity per task
+    # Evaluation protocol (PEARL): per test task eval_runs runs from the prior, whole
+    # trajectories until eval_steps; the posterior of the run's own transitions after
+    # eval_exploration_trajectories trajectories; the last trajectory's return is reported.
+    eval_runs: int = 2
+    eval_steps: int = 600
+    eval_exploration_trajectories: int = 2
+    # CSP's relaxed mask for the actor loss: "straight_through" (paper, as ESPL) or "soft"
+    # (the authors' code). Their two extra terms: a penalty on Ψ's logits outside ±6 and L1 on
+    # Φ's weights (``constrain_scale`` 0.001, ``l0_scale`` 0.01 in their script).
+    csp_relaxed_mask: str = "straight_through"
+    logit_clamp_scale: float = 0.001
+    weight_l1_scale: float = 0.01
+
     # Evaluation.
     progress_eval_episodes: int = 10  # deterministic episodes after each chunk (learning curve)
     eval_episodes: int = 1000  # final evaluation of the exported formula in JAX
@@ -97,9 +138,10 @@ def _plain(value: Any) -> Any:
 
 
 _CHOICES = {
-    "actor": ("symbolic", "mlp"),
-    "layout": ("arranged", "dense", "plain"),
+    "actor": ("symbolic", "mlp", "pearl", "hyper"),
+    "layout": ("arranged", "dense", "plain", "csp", "csp_cond"),
     "selector": ("probabilistic", "l1"),
+    "csp_relaxed_mask": ("straight_through", "soft"),
 }
 _POSITIVE_INT = (
     "seeds",
@@ -112,6 +154,15 @@ _POSITIVE_INT = (
     "schedule_iterations",
     "progress_eval_episodes",
     "eval_episodes",
+    "latent_dim",
+    "hyper_policy_hidden",
+    "meta_batch",
+    "context_batch",
+    "tasks_per_iteration",
+    "prior_steps",
+    "task_buffer_size",
+    "eval_runs",
+    "eval_steps",
 )
 _UNIT_INTERVAL = ("gamma", "polyak", "target_l0_ratio", "target_temperature")
 _POSITIVE_FLOAT = (
@@ -120,8 +171,17 @@ _POSITIVE_FLOAT = (
     "probs_learning_rate",
     "grad_clip",
     "reward_scale",
+    "alpha",
 )
-_NON_NEGATIVE_FLOAT = ("penalty_scale", "select_scale", "bias_l1_scale")
+_NON_NEGATIVE_FLOAT = (
+    "penalty_scale",
+    "select_scale",
+    "bias_l1_scale",
+    "kl_weight",
+    "logit_clamp_scale",
+    "weight_l1_scale",
+)
+_NON_NEGATIVE_INT = ("initial_steps", "posterior_steps", "eval_exploration_trajectories")
 
 
 def _validate(c: Config) -> None:
@@ -154,8 +214,12 @@ def _validate(c: Config) -> None:
             raise UserError(
                 f"config: {name} must be one of {', '.join(choices)}, got {getattr(c, name)!r}"
             )
-    if not 0 <= c.seed < 2**31:
-        raise UserError(f"config: seed must be in [0, 2**31), got {c.seed!r}")
+    for name in ("seed", "task_seed"):
+        if not 0 <= getattr(c, name) < 2**31:
+            raise UserError(f"config: {name} must be in [0, 2**31), got {getattr(c, name)!r}")
+    for name in _NON_NEGATIVE_INT:
+        if not getattr(c, name) >= 0:
+            raise UserError(f"config: {name} must be >= 0, got {getattr(c, name)!r}")
     for name in _POSITIVE_INT:
         if not getattr(c, name) > 0:
             raise UserError(f"config: {name} must be positive, got {getattr(c, name)!r}")

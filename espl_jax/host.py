@@ -5,7 +5,7 @@ Only the env steps leave JAX. One iteration, for all seeds at once:
 1. ``Trainer.start_iteration`` (jitted, vmapped over seeds): the next key, the Bernoulli
    collection mask of each seed (Algorithm 1, line 4) and the per-step noise keys.
 2. K = ``steps_per_iteration`` steps of a gymnasium ``SyncVectorEnv`` with one env per seed: the
-   batched observation goes through ``Trainer.explore`` (jitted, vmapped; the same AR(1) noise and
+   batched observation goes through ``rollout.explore`` (jitted, vmapped; the same AR(1) noise and
    tanh-Gaussian action as the JAX collector), the action is mapped to env units and stepped.
    ``terminated`` is stored, not ``truncated``; at an episode end the stored next_obs is the true
    final observation (same-step autoreset puts it in ``info["final_obs"]``).
@@ -13,10 +13,10 @@ Only the env steps leave JAX. One iteration, for all seeds at once:
    K transitions to each seed's replay buffer and take ``updates_per_iteration`` SAC steps in one
    ``lax.scan``, exactly as in the JAX trainer.
 
-Checkpoints hold the same TrainState as for JAX envs (``env_state`` is None; ``obs`` and
-``episode_return`` are those of the host envs at the end of the last iteration). The Box2D
-simulator state itself is not checkpointed: a resumed run starts from freshly reset envs, seeded
-from the restored state's keys, and drops the partial episodes in progress at the checkpoint.
+Checkpoints hold the same TrainState as for JAX envs (the rollout's ``env_state`` is None; its
+``obs`` and ``episode_return`` are those of the host envs at the end of the last iteration). The
+Box2D simulator state itself is not checkpointed: a resumed run starts from freshly reset envs,
+seeded from the restored state's keys, and drops the partial episodes in progress at the checkpoint.
 So a resumed run is reproducible but not bitwise equal to an uninterrupted one (it is for JAX
 envs).
 
@@ -31,7 +31,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from espl_jax import replay
+from espl_jax import replay, rollout
+from espl_jax.rollout import Rollout
 from espl_jax.sac import Metrics, TrainState
 from espl_jax.trainer import Trainer
 
@@ -78,17 +79,22 @@ class HostCollector:
         def learn(state, transitions, done, finished_returns, obs, episode_return, eps, key):
             state, c_metrics = trainer.record_collection(
                 state,
-                env_state=state.env_state,
-                obs=obs,
-                episode_return=episode_return,
-                exploration_noise=eps,
+                rollout_state=Rollout(None, obs[None], episode_return[None], eps[None]),
                 done=done,
                 finished_returns=finished_returns,
+                steps=self.steps,
             )
-            return trainer.learn(state, transitions, c_metrics, key)
+            one_task = jax.tree.map(lambda x: x[None], transitions)
+            buffer = replay.insert(state.buffer, jnp.zeros(1, jnp.int32), one_task)
+            return trainer.learn(state.replace(buffer=buffer), c_metrics, key)
+
+        def explore(actor_params, mask, obs, eps, key):
+            policy = trainer.actor.at(actor_params, jnp.zeros((0,)))
+            rho = trainer.config.exploration_correlation
+            return rollout.explore(trainer.actor, rho, policy, mask, obs, eps, key)
 
         self._begin = jax.jit(jax.vmap(begin))
-        self._explore = jax.jit(jax.vmap(trainer.explore))
+        self._explore = jax.jit(jax.vmap(explore))
         self._learn = jax.jit(jax.vmap(learn), donate_argnums=0)
 
     def reset(self, state: TrainState) -> None:
@@ -110,7 +116,7 @@ class HostCollector:
         """K steps of every seed's env with the seed's fixed mask (Algorithm 1, lines 5–7).
 
         Args:
-            state: the seeds' states (only ``actor`` and ``exploration_noise`` are read).
+            state: the seeds' states (only ``actor`` and the rollout's noise are read).
             mask: the seeds' collection masks (leading seed axis).
             step_keys: [S, K, 2] one noise key per seed and step.
 
@@ -129,7 +135,7 @@ class HostCollector:
         done = np.empty((s, k), bool)
         finished_returns = np.zeros((s, k), np.float32)
         step_keys = np.asarray(step_keys)
-        eps = state.exploration_noise
+        eps = state.rollout.exploration_noise[:, 0]
         for t in range(k):
             action, eps = self._explore(state.actor, mask, self.obs, eps, step_keys[:, t])
             action = np.asarray(action)
@@ -183,11 +189,12 @@ class HostEvaluator:
     def __init__(self, trainer: Trainer, episodes: int):
         self.env = trainer.env
         self.episodes = episodes
-        actor = trainer.sac.actor
+        actor = trainer.actor
 
         def act(params, obs):  # one seed: obs [E, obs_dim]
-            mask = actor.eval_mask(params)
-            return jax.vmap(actor.deterministic, (None, None, 0))(params, mask, obs)
+            policy = actor.at(params, jnp.zeros((0,)))
+            mask = actor.eval_mask(policy)
+            return jax.vmap(actor.deterministic, (None, None, 0))(policy, mask, obs)
 
         self._act = jax.jit(jax.vmap(act))
 

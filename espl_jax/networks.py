@@ -1,25 +1,29 @@
-"""Neural pieces around the symbolic policy: twin critics, the std network F(s), the MLP baseline.
+"""Neural networks around the policies: critics, std networks, PEARL's encoder, CSP's generators,
+PEARL's and Hyper's policy networks.
 
-The ``Actor`` bundles a mean function (symbolic network, or an MLP for the neural baseline) with the
-std network F(s) (§3.3: "a small neural network F(s) ... to output the standard deviation") and the
-path-selector masks, so the SAC losses treat both actor kinds alike.
+All are flax Linen modules used functionally (``init``/``apply`` on explicit params). Sizes are
+the paper's (App. C, D) and the reference code's:
+
+- ``TwinQ``: two Q(s, a[, z]) MLPs (SAC's clipped double-Q; 256×2 single-task, 300×3 meta-RL).
+- ``MLP``: ReLU MLP; the std network F(s) (64×3, authors' code) and PEARL's context encoder
+  (200×3 on (s, a, r[, s']) → μ and pre-softplus σ² of the latent, PEARL ``MlpEncoder``).
+- ``EnsembleMLP``: one independent MLP per action dimension (the authors' ``EnsembleMLP``):
+  CSP's parameter generator Φ(z) → (w, b) and path-probability generator Ψ(z) → logits
+  (z → 64 → 64 → n, uniform ±1/√fan-in init, Ψ's last bias 3.0 so σ(3) ≈ 0.95 of the paths start
+  active, paper App. C.2).
+- ``HyperNetwork``: Hyper (Sarafian et al. 2021; keynans/HypeRL) — z → 256 → 2 ResBlocks → 512 →
+  2 ResBlocks → 1024 → 2 ResBlocks, with heads that generate the weights of a one-hidden-layer
+  (256) policy on s with separate μ and log σ outputs.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
-from dataclasses import dataclass
-from typing import Any
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
-
-from espl_jax import selector
-from espl_jax.config import Config
-from espl_jax.symbolic import SymbolicNetwork, get_layout
-
-LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0  # clamp of log σ (authors' code, as in SAC)
 
 
 class MLP(nn.Module):
@@ -36,117 +40,128 @@ class MLP(nn.Module):
 
 
 class TwinQ(nn.Module):
-    """Two independent Q(s, a) MLPs (clipped double-Q of SAC). Returns shape (..., 2)."""
+    """Two independent Q(s, a, z) MLPs (clipped double-Q of SAC). Returns shape (..., 2).
+
+    ``z`` is the task latent of meta-RL, (..., latent); single-task runs pass a (0,)-sized z,
+    which leaves the inputs (and so the parameters) exactly those of Q(s, a).
+    """
 
     hidden: Sequence[int]
 
     @nn.compact
-    def __call__(self, obs: jax.Array, action: jax.Array) -> jax.Array:
-        x = jnp.concatenate([obs, action], axis=-1)
+    def __call__(self, obs: jax.Array, action: jax.Array, z: jax.Array) -> jax.Array:
+        z = jnp.broadcast_to(z, (*obs.shape[:-1], z.shape[-1]))
+        x = jnp.concatenate([obs, action, z], axis=-1)
         q1 = MLP(self.hidden, 1, name="q1")(x)
         q2 = MLP(self.hidden, 1, name="q2")(x)
         return jnp.concatenate([q1, q2], axis=-1)
 
 
-@dataclass(frozen=True)
-class Actor:
-    """The policy a ~ tanh(N(mean(s), exp(log_std(s)))) with a maskable symbolic mean.
+def _fan_in_uniform(fan_in: int):
+    """U(−1/√fan_in, 1/√fan_in), torch's and the authors' ``EnsembleLinearLayer`` init."""
+    bound = 1.0 / math.sqrt(fan_in)
 
-    Params pytree: {"mean": symbolic {"w", "b"} or MLP params, "probs": selector probabilities
-    shaped like the symbolic weights (empty for the MLP actor or the L1 ablation), "std": F(s)}.
+    def init(key, shape, dtype=jnp.float32):
+        return jax.random.uniform(key, shape, dtype, -bound, bound)
+
+    return init
+
+
+class _TorchDense(nn.Module):
+    features: int
+    last_bias: float | None = None
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        init = _fan_in_uniform(x.shape[-1])
+        kernel = self.param("kernel", init, (x.shape[-1], self.features))
+        if self.last_bias is None:
+            bias = self.param("bias", init, (self.features,))
+        else:
+            bias = self.param("bias", nn.initializers.constant(self.last_bias), (self.features,))
+        return x @ kernel + bias
+
+
+class _GeneratorMLP(nn.Module):
+    hidden: Sequence[int]
+    out: int
+    last_bias: float | None = None
+
+    @nn.compact
+    def __call__(self, z: jax.Array) -> jax.Array:
+        for width in self.hidden:
+            z = nn.relu(_TorchDense(width)(z))
+        return _TorchDense(self.out, self.last_bias)(z)
+
+
+class EnsembleMLP(nn.Module):
+    """``members`` independent MLPs z → hidden → out, one per action dimension: (L,) → (A, out)."""
+
+    members: int
+    hidden: Sequence[int]
+    out: int
+    last_bias: float | None = None
+
+    @nn.compact
+    def __call__(self, z: jax.Array) -> jax.Array:
+        ensemble = nn.vmap(
+            _GeneratorMLP,
+            variable_axes={"params": 0},
+            split_rngs={"params": True},
+            in_axes=None,
+            axis_size=self.members,
+        )
+        return ensemble(self.hidden, self.out, self.last_bias, name="members")(z)
+
+
+class _ResBlock(nn.Module):
+    """Pre-activation residual block: x + W2 relu(W1 relu(x)) (HypeRL ``ResBlock``)."""
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        width = x.shape[-1]
+        h = nn.Dense(width)(nn.relu(x))
+        return x + nn.Dense(width)(nn.relu(h))
+
+
+class HyperNetwork(nn.Module):
+    """z (L,) → the weights of a policy network s → 256 → (μ, log σ) (Sarafian et al. 2021).
+
+    Returns a dict {"w1": (obs, 256), "b1": (256,), "w_mean": (256, A), "b_mean": (A,),
+    "w_log_std": (256, A), "b_log_std": (A,)}. The generated layers are scaled by
+    1/√fan-in so the generated policy starts at the scale of a normally initialised one.
     """
 
-    config: Config
     obs_dim: int
     action_dim: int
+    hidden: int = 256
 
-    @property
-    def symbolic(self) -> SymbolicNetwork | None:
-        if self.config.actor != "symbolic":
-            return None
-        return SymbolicNetwork(get_layout(self.config.layout), self.obs_dim, self.action_dim)
+    @nn.compact
+    def __call__(self, z: jax.Array) -> dict[str, jax.Array]:
+        x = nn.Dense(256)(z)
+        for width in (256, 512, 1024):
+            if x.shape[-1] != width:
+                x = nn.Dense(width)(x)
+            x = _ResBlock()(_ResBlock()(x))
+        x = nn.relu(x)
+        n, h, a = self.obs_dim, self.hidden, self.action_dim
 
-    @property
-    def uses_selector(self) -> bool:
-        return self.symbolic is not None and self.config.selector == "probabilistic"
+        def head(name: str, size: int, fan_in: int) -> jax.Array:
+            return nn.Dense(size, name=name)(x) / math.sqrt(fan_in)
 
-    def _mlp_mean(self) -> MLP:
-        return MLP(self.config.mlp_actor_hidden, self.action_dim)
-
-    def _std_net(self) -> MLP:
-        return MLP(self.config.std_hidden, self.action_dim)
-
-    def init(self, key: jax.Array) -> dict[str, Any]:
-        k_mean, k_std = jax.random.split(key)
-        dummy = jnp.zeros((self.obs_dim,))
-        std = self._std_net().init(k_std, dummy)
-        if self.symbolic is None:
-            return {"mean": self._mlp_mean().init(k_mean, dummy), "probs": [], "std": std}
-        mean = self.symbolic.init(k_mean)
-        probs = selector.init_probs(mean["w"]) if self.uses_selector else []
-        return {"mean": mean, "probs": probs, "std": std}
-
-    # Masks ---------------------------------------------------------------------------------
-
-    def train_mask(self, key: jax.Array, params: dict, tau: jax.Array) -> list | None:
-        """Gumbel-sigmoid straight-through mask (Algorithm 1, line 11)."""
-        if self.symbolic is None:
-            return None
-        if not self.uses_selector:
-            return selector.ones_mask(params["mean"]["w"])
-        return selector.gumbel_sigmoid_mask(key, params["probs"], tau)
-
-    def collect_mask(self, key: jax.Array, params: dict) -> list | None:
-        """Bernoulli mask for data collection (Algorithm 1, line 4)."""
-        if self.symbolic is None:
-            return None
-        if not self.uses_selector:
-            return selector.ones_mask(params["mean"]["w"])
-        return selector.bernoulli_mask(key, params["probs"])
-
-    def eval_mask(self, params: dict) -> list | None:
-        """The exported formula's mask: p > 0.5 and |w| > 1e-3."""
-        if self.symbolic is None:
-            return None
-        probs = params["probs"] if self.uses_selector else selector.ones_mask(params["mean"]["w"])
-        return selector.deterministic_mask(probs, params["mean"]["w"])
-
-    # Forward -------------------------------------------------------------------------------
-
-    def mean(self, params: dict, mask: list | None, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """Pre-tanh mean (action_dim,) and operator penalty (scalar) for one observation."""
-        if self.symbolic is None:
-            return self._mlp_mean().apply(params["mean"], obs), jnp.zeros(())
-        return self.symbolic.apply(params["mean"], mask, obs)
-
-    def log_std(self, params: dict, obs: jax.Array) -> jax.Array:
-        return jnp.clip(self._std_net().apply(params["std"], obs), LOG_STD_MIN, LOG_STD_MAX)
-
-    def sample(
-        self, key: jax.Array, params: dict, mask: list | None, obs: jax.Array
-    ) -> tuple[jax.Array, jax.Array, jax.Array]:
-        """a = tanh(μ + σ ε) with its log-probability and the operator penalty, for one obs."""
-        mean, penalty = self.mean(params, mask, obs)
-        log_std = self.log_std(params, obs)
-        u = mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape)
-        return jnp.tanh(u), tanh_gaussian_log_prob(u, mean, log_std), penalty
-
-    def act_with_noise(
-        self, params: dict, mask: list | None, obs: jax.Array, eps: jax.Array
-    ) -> jax.Array:
-        """a = tanh(μ + σ ε) for a given standard-normal ε (action_dim,): collection's action."""
-        mean, _ = self.mean(params, mask, obs)
-        return jnp.tanh(mean + jnp.exp(self.log_std(params, obs)) * eps)
-
-    def deterministic(self, params: dict, mask: list | None, obs: jax.Array) -> jax.Array:
-        return jnp.tanh(self.mean(params, mask, obs)[0])
+        return {
+            "w1": head("w1", n * h, n).reshape(n, h),
+            "b1": head("b1", h, n),
+            "w_mean": head("w_mean", h * a, h).reshape(h, a),
+            "b_mean": head("b_mean", a, h),
+            "w_log_std": head("w_log_std", h * a, h).reshape(h, a),
+            "b_log_std": head("b_log_std", a, h),
+        }
 
 
-def tanh_gaussian_log_prob(u: jax.Array, mean: jax.Array, log_std: jax.Array) -> jax.Array:
-    """log π(tanh(u)) for u ~ N(mean, σ²): Gaussian log-density minus Σ log(1 − tanh(u)²).
-
-    Uses log(1 − tanh(u)²) = 2 (log 2 − u − softplus(−2u)), stable for large |u| (SAC, App. C).
-    """
-    gauss = -0.5 * ((u - mean) / jnp.exp(log_std)) ** 2 - log_std - 0.5 * jnp.log(2 * jnp.pi)
-    correction = 2.0 * (jnp.log(2.0) - u - jax.nn.softplus(-2.0 * u))
-    return jnp.sum(gauss - correction, axis=-1)
+def generated_policy(weights: dict[str, jax.Array], obs: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Hyper's generated network on one observation: (μ, log σ), each (A,)."""
+    h = nn.relu(obs @ weights["w1"] + weights["b1"])
+    return h @ weights["w_mean"] + weights["b_mean"], h @ weights["w_log_std"] + weights[
+        "b_log_std"
+    ]

@@ -1,4 +1,9 @@
-"""Replay buffer as pure functions over a pytree (the fill count lives inside the struct)."""
+"""Replay buffers as pure functions over a pytree, with a leading task axis.
+
+One ``ReplayBuffer`` holds every task's transitions: ``data`` leaves are [T, capacity, ...],
+``position`` and ``size`` are [T] (the fill counts live inside the struct). A single-task run is
+T = 1. PEARL's per-task RL buffers and encoder buffers (DESIGN "Meta-RL") are two such structs.
+"""
 
 from __future__ import annotations
 
@@ -24,47 +29,61 @@ class Transition:
 
 @struct.dataclass
 class ReplayBuffer:
-    data: Transition  # arrays with leading axis ``capacity``
-    position: jax.Array  # int32, next write index
-    size: jax.Array  # int32, number of valid entries
+    data: Transition  # arrays [tasks, capacity, ...]
+    position: jax.Array  # int32 [tasks], next write index
+    size: jax.Array  # int32 [tasks], number of valid entries
 
     @property
     def capacity(self) -> int:
-        return self.data.reward.shape[0]
+        return self.data.reward.shape[-1]
 
 
-def init(capacity: int, obs_dim: int, action_dim: int) -> ReplayBuffer:
+def init(tasks: int, capacity: int, obs_dim: int, action_dim: int) -> ReplayBuffer:
     data = Transition(
-        obs=jnp.zeros((capacity, obs_dim)),
-        action=jnp.zeros((capacity, action_dim)),
-        reward=jnp.zeros((capacity,)),
-        next_obs=jnp.zeros((capacity, obs_dim)),
-        terminated=jnp.zeros((capacity,), bool),
+        obs=jnp.zeros((tasks, capacity, obs_dim)),
+        action=jnp.zeros((tasks, capacity, action_dim)),
+        reward=jnp.zeros((tasks, capacity)),
+        next_obs=jnp.zeros((tasks, capacity, obs_dim)),
+        terminated=jnp.zeros((tasks, capacity), bool),
     )
-    return ReplayBuffer(data, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32))
+    zeros = jnp.zeros((tasks,), jnp.int32)
+    return ReplayBuffer(data, zeros, zeros)
 
 
-def insert(buffer: ReplayBuffer, batch: Transition) -> ReplayBuffer:
-    """Write a batch of ``n`` transitions at the write position, overwriting the oldest.
+def insert(buffer: ReplayBuffer, tasks: jax.Array, batch: Transition) -> ReplayBuffer:
+    """Append ``batch`` [R, n, ...] to the buffers of the R *distinct* ``tasks`` [R], FIFO.
 
-    The trainer sizes the capacity as a multiple of ``n`` so a batch never straddles the end.
+    Rows wrap around the end of a task's buffer, overwriting its oldest entries.
     """
-    n = batch.reward.shape[0]
+    n = batch.reward.shape[1]
     capacity = buffer.capacity
+    rows = (buffer.position[tasks][:, None] + jnp.arange(n)) % capacity  # [R, n]
     data = jax.tree.map(
-        lambda store, new: jax.lax.dynamic_update_slice_in_dim(store, new, buffer.position, 0),
-        buffer.data,
-        batch,
+        lambda store, new: store.at[tasks[:, None], rows].set(new), buffer.data, batch
     )
     return ReplayBuffer(
-        data, (buffer.position + n) % capacity, jnp.minimum(buffer.size + n, capacity)
+        data,
+        buffer.position.at[tasks].set((buffer.position[tasks] + n) % capacity),
+        buffer.size.at[tasks].set(jnp.minimum(buffer.size[tasks] + n, capacity)),
     )
 
 
-def sample(buffer: ReplayBuffer, key: jax.Array, batch_size: int) -> Transition:
-    """Uniform sample with replacement among the valid entries (as rlkit does)."""
-    idx = jax.random.randint(key, (batch_size,), 0, jnp.maximum(buffer.size, 1))
-    return jax.tree.map(lambda x: x[idx], buffer.data)
+def clear(buffer: ReplayBuffer, tasks: jax.Array) -> ReplayBuffer:
+    """Empty the buffers of ``tasks`` (PEARL clears a task's encoder buffer on each visit)."""
+    return buffer.replace(
+        position=buffer.position.at[tasks].set(0), size=buffer.size.at[tasks].set(0)
+    )
+
+
+def sample(buffer: ReplayBuffer, tasks: jax.Array, keys: jax.Array, n: int) -> Transition:
+    """``n`` transitions per task of ``tasks`` [B], uniformly with replacement among the valid
+    entries (as rlkit does), one key per task: a batch [B, n, ...]."""
+
+    def one(task, key):
+        idx = jax.random.randint(key, (n,), 0, jnp.maximum(buffer.size[task], 1))
+        return jax.tree.map(lambda x: x[task, idx], buffer.data)
+
+    return jax.vmap(one)(tasks, keys)
 
 
 def capacity_for(requested: int, chunk: int) -> int:
@@ -73,19 +92,21 @@ def capacity_for(requested: int, chunk: int) -> int:
 
 
 def resize(buffer: ReplayBuffer, capacity: int) -> ReplayBuffer:
-    """The same transitions in a buffer of another capacity (zero-padded or cut at the end).
+    """The same transitions in buffers of another capacity (zero-padded or cut at the end).
 
-    Exact only for a buffer that has not wrapped (its entries are rows 0 … size−1, oldest first)
-    and fits: a run extended by ``--resume --iterations`` then holds exactly what a run planned
-    that long holds at the same iteration. The trainer sizes a buffer by the run's total env steps
-    (capped by ``buffer_size``), so a buffer whose capacity depends on ``iterations`` never wraps.
+    Exact only for buffers that have not wrapped (entries are rows 0 … size−1, oldest first)
+    and fit: a run extended by ``--resume --iterations`` then holds exactly what a run planned
+    that long holds at the same iteration. The trainer sizes a single-task buffer by the run's
+    total env steps (capped by ``buffer_size``), so a buffer whose capacity depends on
+    ``iterations`` never wraps.
     """
     old = buffer.capacity
 
     def fit(x):
         if capacity <= old:
-            return x[:capacity]
-        return jnp.concatenate([x, jnp.zeros((capacity - old, *x.shape[1:]), x.dtype)])
+            return x[:, :capacity]
+        pad = jnp.zeros((x.shape[0], capacity - old, *x.shape[2:]), x.dtype)
+        return jnp.concatenate([x, pad], axis=1)
 
     size = jnp.minimum(buffer.size, capacity)
     return ReplayBuffer(jax.tree.map(fit, buffer.data), size % capacity, size)

@@ -191,12 +191,12 @@ def restore(run_dir: str | Path, trainer: Trainer) -> tuple[int, TrainState]:
     capacity = trainer.buffer_capacity
 
     def with_capacity(state: TrainState, n: int) -> TrainState:
-        if state.buffer.data.reward.shape[1] == n:  # [seeds, capacity]
+        if state.buffer.data.reward.shape[-1] == n:  # [seeds, tasks, capacity]
             return state
         return state.replace(buffer=jax.vmap(lambda b: replay.resize(b, n))(state.buffer))
 
     def like(stored: dict) -> TrainState:
-        stored_capacity = stored["buffer"]["data"]["reward"].shape[1]  # [seeds, capacity]
+        stored_capacity = stored["buffer"]["data"]["reward"].shape[-1]  # [seeds, tasks, cap]
         return with_capacity(template, stored_capacity)
 
     step, state = checkpoint.restore_latest(Path(run_dir) / CHECKPOINT_DIR, like)
@@ -263,7 +263,7 @@ def finish(
     for s in range(cfg.seeds):
         actor = jax.tree.map(lambda x, s=s: np.asarray(x[s]), state.actor)
         entry = {"seed": s, "jax_eval": evaluation.summary(report[s])}
-        if trainer.sac.actor.symbolic is not None:
+        if trainer.actor.symbolic is not None:
             exprs = export_expressions(trainer, actor)
             formulas[s] = exprs
             entry["formula"] = ex.to_text(exprs)
@@ -343,8 +343,8 @@ def _write_atomic(path: Path, text: str) -> None:
 
 def export_expressions(trainer: Trainer, actor_params: dict) -> list:
     """Protected sympy expressions of one seed's deterministic symbolic policy."""
-    network = trainer.sac.actor.symbolic
-    probs = actor_params["probs"] if trainer.sac.actor.uses_selector else None
+    network = trainer.actor.symbolic
+    probs = actor_params["probs"] if trainer.actor.uses_selector else None
     return ex.network_expressions(network, actor_params["mean"], probs)
 
 

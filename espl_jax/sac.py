@@ -1,14 +1,26 @@
-"""Functional SAC with the symbolic actor (ESPL §3.3, Algorithm 1 lines 9–18).
+"""Functional SAC over task batches: ESPL (Algorithm 1 lines 9–18) and CSP/PEARL/Hyper
+(Algorithm 2 lines 13–30) are the same update.
 
-Critic: twin Q with target networks and clipped double-Q (Haarnoja et al. 2018, Eq. 5 with the
-min of two Qs). Actor: ``L_actor = L_actor^SAC + α1·L_penalty + α2·L_select`` (Algorithm 1, line 14)
-over w, b, p and the std network θ_F, with the policy gradient clipped by global norm; p is
-projected back onto [0, 1] after each step (App. C.1). Entropy temperature α is tuned
-automatically towards a target entropy of −|A| (Haarnoja et al. 2018b, Eq. 18).
+Every update draws a batch of tasks (single-task: the one task), per task an RL batch from its
+replay buffer and, for meta-RL, a context from its encoder buffer. The encoder turns the context
+into q(z|c); a reparameterised sample z conditions the critic (whose loss, with β·KL(q‖N(0,I)),
+trains the encoder); the policy side and the targets see stop_gradient(z).
+
+- Critic: twin Q with target networks and clipped double-Q (Haarnoja et al. 2018, Eq. 5 with the
+  min of two Qs), y = scale·r + γ(1 − term)(min Q'(s', a', z) − α log π(a'|s', z)); the next
+  action uses a fresh Bernoulli mask, as the authors' code does. Loss: the mean over tasks.
+- Actor: ``L_actor = L_actor^SAC + α1·L_penalty + α2·L_select`` (Algorithm 1 line 14,
+  Algorithm 2 line 24) over the policy's params, the policy gradient clipped by global norm,
+  then projected (ESPL: p back onto [0, 1], App. C.1). L_select is divided by |A| as in the
+  authors' code.
+- α: tuned towards −|A| (Haarnoja et al. 2018b, Eq. 18), or fixed (``auto_alpha: false``).
+
+Order in one step (DESIGN): critic and encoder, actor against the updated critic, α, Polyak.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,16 +29,22 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from espl_jax import replay, selector
+from espl_jax import pearl, replay
 from espl_jax.config import Config
-from espl_jax.networks import Actor, TwinQ
+from espl_jax.networks import TwinQ
+from espl_jax.policies import Actor
 
 Metrics = dict[str, jax.Array]
 
 
 @struct.dataclass
 class TrainState:
-    """All mutable state of one run (one seed); vmapped over seeds by the trainer."""
+    """All mutable state of one run (one seed); vmapped over seeds by the trainer.
+
+    Buffers have a leading task axis (single-task: 1); ``rollout`` has one slot per task being
+    collected on (single-task: the one env, whose episodes continue across iterations; meta-RL:
+    the visited tasks, reset at every phase). ``encoder*`` are None for single-task runs.
+    """
 
     actor: dict[str, Any]
     critic: Any
@@ -35,47 +53,54 @@ class TrainState:
     actor_opt: optax.OptState
     critic_opt: optax.OptState
     alpha_opt: optax.OptState
+    encoder: Any
+    encoder_opt: optax.OptState | None
     buffer: replay.ReplayBuffer
-    env_state: Any
-    obs: jax.Array
-    episode_return: jax.Array  # return of the episode in progress
-    exploration_noise: jax.Array  # (action_dim,) the ε of the last collection step
+    encoder_buffer: replay.ReplayBuffer | None
+    rollout: Any  # rollout.Rollout with a leading slot axis
     key: jax.Array
     iteration: jax.Array  # int32, completed training iterations
     env_steps: jax.Array  # int32
     episodes: jax.Array  # int32, finished training episodes
 
 
+def task_keys(key: jax.Array, n: int) -> jax.Array:
+    """One key per task: ``key`` itself for one task (so a single-task run draws what it drew
+    before runs had a task axis), else ``split(key, n)``."""
+    return key[None] if n == 1 else jax.random.split(key, n)
+
+
 @dataclass(frozen=True)
 class SAC:
-    """Static parts of the algorithm: networks, optimizers and hyperparameters."""
+    """Static parts of the algorithm: networks, optimizers and hyperparameters.
+
+    Attributes:
+        config: the run's config.
+        actor: the policy kind.
+        encoder: PEARL's context encoder, or None for single-task runs.
+        num_tasks: size of the buffers' task axis.
+    """
 
     config: Config
-    obs_dim: int
-    action_dim: int
+    actor: Actor
+    encoder: pearl.Encoder | None
+    num_tasks: int
 
     @property
-    def actor(self) -> Actor:
-        return Actor(self.config, self.obs_dim, self.action_dim)
+    def meta(self) -> bool:
+        return self.encoder is not None
+
+    @property
+    def obs_dim(self) -> int:
+        return self.actor.obs_dim
+
+    @property
+    def action_dim(self) -> int:
+        return self.actor.action_dim
 
     @property
     def critic(self) -> TwinQ:
         return TwinQ(self.config.critic_hidden)
-
-    @property
-    def actor_tx(self) -> optax.GradientTransformation:
-        cfg = self.config
-        per_group = optax.multi_transform(
-            {
-                "probs": optax.adam(cfg.probs_learning_rate),
-                "rest": optax.adam(cfg.actor_learning_rate),
-            },
-            lambda params: {
-                k: jax.tree.map(lambda _, k=k: "probs" if k == "probs" else "rest", v)
-                for k, v in params.items()
-            },
-        )
-        return optax.chain(optax.clip_by_global_norm(cfg.grad_clip), per_group)
 
     @property
     def critic_tx(self) -> optax.GradientTransformation:
@@ -86,93 +111,156 @@ class SAC:
         return optax.adam(self.config.learning_rate)
 
     @property
+    def encoder_tx(self) -> optax.GradientTransformation:
+        return optax.adam(self.config.learning_rate)
+
+    @property
     def target_entropy(self) -> float:
         return -float(self.action_dim)
 
+    @property
+    def context_dim(self) -> int:
+        use_next = self.encoder is not None and self.encoder.use_next_obs
+        return (2 if use_next else 1) * self.obs_dim + self.action_dim + 1
+
     def init_learner(self, key: jax.Array) -> dict[str, Any]:
-        """Fresh actor, critics, targets, α and optimizer states."""
+        """Fresh actor, critics, targets, α, encoder and optimizer states."""
         k_actor, k_critic = jax.random.split(key)
         actor = self.actor.init(k_actor)
+        z = jnp.zeros((self.actor.latent_dim,))
         critic = self.critic.init(
-            k_critic, jnp.zeros((self.obs_dim,)), jnp.zeros((self.action_dim,))
+            k_critic, jnp.zeros((self.obs_dim,)), jnp.zeros((self.action_dim,)), z
         )
-        log_alpha = jnp.zeros(())
-        return {
+        log_alpha = jnp.asarray(math.log(self.config.alpha), jnp.float32)
+        learner = {
             "actor": actor,
             "critic": critic,
             "target_critic": critic,
             "log_alpha": log_alpha,
-            "actor_opt": self.actor_tx.init(actor),
+            "actor_opt": self.actor.optimizer().init(actor),
             "critic_opt": self.critic_tx.init(critic),
             "alpha_opt": self.alpha_tx.init(log_alpha),
+            "encoder": None,
+            "encoder_opt": None,
         }
+        if self.meta:
+            encoder = self.encoder.init(jax.random.fold_in(key, 1), self.context_dim)
+            learner.update(encoder=encoder, encoder_opt=self.encoder_tx.init(encoder))
+        return learner
+
+    # Batches and latents ---------------------------------------------------------------------
+
+    def sample_batch(
+        self, state: TrainState, key: jax.Array
+    ) -> tuple[replay.Transition, replay.Transition | None]:
+        """(RL batch [tasks, B, ...], context [tasks, C, ...] or None) for one update."""
+        cfg = self.config
+        if not self.meta:
+            tasks = jnp.zeros((1,), jnp.int32)
+            return replay.sample(state.buffer, tasks, task_keys(key, 1), cfg.batch_size), None
+        k_tasks, k_rl, k_context = jax.random.split(key, 3)
+        n = cfg.meta_batch
+        tasks = jax.random.randint(k_tasks, (n,), 0, self.num_tasks)  # with replacement (PEARL)
+        batch = replay.sample(state.buffer, tasks, jax.random.split(k_rl, n), cfg.batch_size)
+        context = replay.sample(
+            state.encoder_buffer, tasks, jax.random.split(k_context, n), cfg.context_batch
+        )
+        return batch, context
+
+    def latents(
+        self, encoder: Any, context: replay.Transition | None, key: jax.Array, tasks: int
+    ) -> tuple[jax.Array, jax.Array]:
+        """z ~ q(z | c) per task (reparameterised) and Σ_tasks KL(q ‖ N(0, I)); single-task
+        runs have a (tasks, 0) z and no KL."""
+        if not self.meta:
+            return jnp.zeros((tasks, 0)), jnp.zeros(())
+        mu, var = jax.vmap(self.encoder.posterior, (None, 0))(encoder, context)
+        z = pearl.sample(key, mu, var)
+        return z, jnp.sum(pearl.kl_to_standard_normal(mu, var))
 
     # Losses --------------------------------------------------------------------------------
 
     def critic_loss(
-        self, critic: Any, state: TrainState, batch: replay.Transition, key: jax.Array
-    ) -> tuple[jax.Array, Metrics]:
-        """Σ_i mean (Q_i(s, a) − y)², y = r·scale + γ (1 − term)(min Q'(s', a') − α log π(a'|s')).
-
-        The next action uses a fresh Bernoulli mask, as the authors' implementation does.
-        """
-        k_mask, k_act = jax.random.split(key)
+        self,
+        critic: Any,
+        encoder: Any,
+        state: TrainState,
+        batch: replay.Transition,
+        context: replay.Transition | None,
+        key: jax.Array,
+    ) -> tuple[jax.Array, tuple[Metrics, jax.Array]]:
+        """mean over tasks of Σ_i mean_batch (Q_i(s, a, z) − y)² + β Σ_tasks KL (Algorithm 2)."""
         actor, cfg = self.actor, self.config
-        mask = actor.collect_mask(k_mask, state.actor)
-        keys = jax.random.split(k_act, batch.reward.shape[0])
-        next_action, next_log_prob, _ = jax.vmap(actor.sample, (0, None, None, 0))(
-            keys, state.actor, mask, batch.next_obs
-        )
-        next_q = self.critic.apply(state.target_critic, batch.next_obs, next_action).min(-1)
-        soft_next = next_q - jnp.exp(state.log_alpha) * next_log_prob
-        target = cfg.reward_scale * batch.reward + cfg.gamma * (1.0 - batch.terminated) * soft_next
-        q = self.critic.apply(critic, batch.obs, batch.action)
-        loss = jnp.sum(jnp.mean((q - jax.lax.stop_gradient(target)[:, None]) ** 2, axis=0))
-        return loss, {"critic_loss": loss, "q": jnp.mean(q)}
+        tasks, size = batch.reward.shape[:2]
+        k_mask, k_act = jax.random.split(key)
+        z, kl = self.latents(encoder, context, jax.random.fold_in(key, 1), tasks)
+        alpha = jnp.exp(state.log_alpha)
+
+        def per_task(b, z_t, k_mask_t, k_act_t):
+            policy = actor.at(state.actor, jax.lax.stop_gradient(z_t))
+            mask = actor.collect_mask(k_mask_t, policy)
+            keys = jax.random.split(k_act_t, size)
+            next_action, next_log_prob, _ = jax.vmap(actor.sample, (0, None, None, 0))(
+                keys, policy, mask, b.next_obs
+            )
+            next_q = self.critic.apply(state.target_critic, b.next_obs, next_action, z_t).min(-1)
+            soft_next = next_q - alpha * next_log_prob
+            target = cfg.reward_scale * b.reward + cfg.gamma * (1.0 - b.terminated) * soft_next
+            q = self.critic.apply(critic, b.obs, b.action, z_t)
+            loss = jnp.sum(jnp.mean((q - jax.lax.stop_gradient(target)[:, None]) ** 2, axis=0))
+            return loss, jnp.mean(q)
+
+        losses, qs = jax.vmap(per_task)(batch, z, task_keys(k_mask, tasks), task_keys(k_act, tasks))
+        critic_loss = jnp.mean(losses)
+        loss = critic_loss + cfg.kl_weight * kl if self.meta else critic_loss
+        metrics = {"critic_loss": critic_loss, "q": jnp.mean(qs)}
+        if self.meta:
+            metrics["kl"] = kl / tasks
+        return loss, (metrics, z)
 
     def actor_loss(
         self,
         params: dict,
         state: TrainState,
         batch: replay.Transition,
+        z: jax.Array,
         key: jax.Array,
         tau: jax.Array,
         l_min: jax.Array,
     ) -> tuple[jax.Array, Metrics]:
-        """mean(α log π − min Q) + α1·mean(L_penalty) + α2·L_select (Algorithm 1, line 14).
-
-        L_select is divided by the number of action dimensions, as in the authors' code, so α2
-        keeps its meaning across environments. For the L1 ablation α2 weighs Σ|w| instead.
-        """
-        k_mask, k_act = jax.random.split(key)
+        """mean(α log π − min Q) + α1·mean(L_penalty) + α2·L_select/|A| (+ the kind's extra
+        terms), each averaged over the batch's tasks (Algorithm 1 line 14, Algorithm 2 line 24).
+        ``z`` is already stop_gradient-ed."""
         actor, cfg = self.actor, self.config
-        mask = actor.train_mask(k_mask, params, tau)
-        keys = jax.random.split(k_act, batch.reward.shape[0])
-        action, log_prob, penalty = jax.vmap(actor.sample, (0, None, None, 0))(
-            keys, params, mask, batch.obs
+        tasks, size = batch.reward.shape[:2]
+        k_mask, k_act = jax.random.split(key)
+        alpha = jnp.exp(state.log_alpha)
+
+        def per_task(b, z_t, k_mask_t, k_act_t):
+            policy = actor.at(params, z_t)
+            mask = actor.train_mask(k_mask_t, policy, tau)
+            keys = jax.random.split(k_act_t, size)
+            action, log_prob, penalty = jax.vmap(actor.sample, (0, None, None, 0))(
+                keys, policy, mask, b.obs
+            )
+            q = self.critic.apply(state.critic, b.obs, action, z_t).min(-1)
+            select, extra = actor.regularizers(policy, l_min)
+            sac = jnp.mean(alpha * log_prob - q)
+            return sac, jnp.mean(penalty), select, extra, jnp.mean(log_prob), actor.l0_ratio(policy)
+
+        sac, penalty, select, extra, log_prob, l0 = jax.vmap(per_task)(
+            batch, z, task_keys(k_mask, tasks), task_keys(k_act, tasks)
         )
-        q = self.critic.apply(state.critic, batch.obs, action).min(-1)
-        sac_loss = jnp.mean(jnp.exp(state.log_alpha) * log_prob - q)
-        if actor.uses_selector:
-            regularizer = selector.select_loss(params["probs"], l_min)
-        elif actor.symbolic is not None:
-            regularizer = selector.l1_loss(params["mean"]["w"])
-        else:
-            regularizer = jnp.zeros(())
-        penalty = jnp.mean(penalty)
-        loss = (
-            sac_loss
-            + cfg.penalty_scale * penalty
-            + cfg.select_scale * regularizer / self.action_dim
-        )
-        if actor.symbolic is not None and cfg.bias_l1_scale > 0:
-            biases = jnp.concatenate([b.ravel() for b in params["mean"]["b"]])
-            loss = loss + cfg.bias_l1_scale * jnp.mean(jnp.abs(biases))
+        sac_loss, penalty, select = jnp.mean(sac), jnp.mean(penalty), jnp.mean(select)
+        loss = sac_loss + cfg.penalty_scale * penalty + cfg.select_scale * select / self.action_dim
+        if actor.has_extra_loss:
+            loss = loss + jnp.mean(extra)
         metrics = {
             "actor_loss": sac_loss,
             "penalty": penalty,
-            "select_loss": regularizer,
+            "select_loss": select,
             "log_prob": jnp.mean(log_prob),
+            "batch_l0_ratio": jnp.mean(l0),
         }
         return loss, metrics
 
@@ -181,31 +269,41 @@ class SAC:
     def update(
         self, state: TrainState, key: jax.Array, tau: jax.Array, l_min: jax.Array
     ) -> tuple[TrainState, Metrics]:
-        """One SAC step on a sampled batch: critic, actor (w, b, p, θ_F), α, then Polyak."""
+        """One SAC step: critic (and encoder), actor, α, then Polyak."""
         k_batch, k_critic, k_actor = jax.random.split(key, 3)
-        batch = replay.sample(state.buffer, k_batch, self.config.batch_size)
+        batch, context = self.sample_batch(state, k_batch)
 
-        (_, c_metrics), c_grads = jax.value_and_grad(self.critic_loss, has_aux=True)(
-            state.critic, state, batch, k_critic
-        )
+        (_, (c_metrics, z)), (c_grads, e_grads) = jax.value_and_grad(
+            self.critic_loss, argnums=(0, 1), has_aux=True
+        )(state.critic, state.encoder, state, batch, context, k_critic)
         c_updates, critic_opt = self.critic_tx.update(c_grads, state.critic_opt, state.critic)
         critic = optax.apply_updates(state.critic, c_updates)
         state = state.replace(critic=critic, critic_opt=critic_opt)
+        if self.meta:
+            e_updates, encoder_opt = self.encoder_tx.update(
+                e_grads, state.encoder_opt, state.encoder
+            )
+            state = state.replace(
+                encoder=optax.apply_updates(state.encoder, e_updates), encoder_opt=encoder_opt
+            )
 
         (_, a_metrics), a_grads = jax.value_and_grad(self.actor_loss, has_aux=True)(
-            state.actor, state, batch, k_actor, tau, l_min
+            state.actor, state, batch, jax.lax.stop_gradient(z), k_actor, tau, l_min
         )
-        a_updates, actor_opt = self.actor_tx.update(a_grads, state.actor_opt, state.actor)
-        actor = optax.apply_updates(state.actor, a_updates)
-        actor = {**actor, "probs": selector.project_probs(actor["probs"])}
+        tx = self.actor.optimizer()
+        a_updates, actor_opt = tx.update(a_grads, state.actor_opt, state.actor)
+        actor = self.actor.project(optax.apply_updates(state.actor, a_updates))
 
-        def alpha_loss(log_alpha):
-            entropy_gap = jax.lax.stop_gradient(a_metrics["log_prob"] + self.target_entropy)
-            return -log_alpha * entropy_gap
+        log_alpha, alpha_opt = state.log_alpha, state.alpha_opt
+        if self.config.auto_alpha:
 
-        alpha_grad = jax.grad(alpha_loss)(state.log_alpha)
-        alpha_updates, alpha_opt = self.alpha_tx.update(alpha_grad, state.alpha_opt)
-        log_alpha = optax.apply_updates(state.log_alpha, alpha_updates)
+            def alpha_loss(log_alpha):
+                entropy_gap = jax.lax.stop_gradient(a_metrics["log_prob"] + self.target_entropy)
+                return -log_alpha * entropy_gap
+
+            alpha_grad = jax.grad(alpha_loss)(state.log_alpha)
+            alpha_updates, alpha_opt = self.alpha_tx.update(alpha_grad, state.alpha_opt)
+            log_alpha = optax.apply_updates(state.log_alpha, alpha_updates)
 
         target = optax.incremental_update(critic, state.target_critic, self.config.polyak)
         state = state.replace(

@@ -56,12 +56,27 @@ def gumbel_sigmoid_mask(key: jax.Array, probs: Tree, tau: jax.Array | float) -> 
     keys = jax.random.split(key, len(leaves))
     masks = []
     for k, p in zip(keys, leaves, strict=True):
-        logit = jnp.log(jnp.maximum(p, LOGIT_EPS)) - jnp.log(jnp.maximum(1.0 - p, LOGIT_EPS))
-        soft = jax.nn.sigmoid((logit + jax.random.logistic(k, p.shape, p.dtype)) / tau)
+        soft = jax.nn.sigmoid((_logit(p) + jax.random.logistic(k, p.shape, p.dtype)) / tau)
         hard = (soft >= 0.5).astype(p.dtype)
         # Parenthesised so the forward value is exactly the hard mask: (s - sg(s)) == 0.
         masks.append(hard + (soft - jax.lax.stop_gradient(soft)))
     return jax.tree.unflatten(treedef, masks)
+
+
+def soft_gumbel_sigmoid_mask(key: jax.Array, probs: Tree, tau: jax.Array | float) -> Tree:
+    """The relaxed mask m_gs itself, without the straight-through threshold (the authors' CSP
+    code, ``hard_gum=False``): values in (0, 1), gradients through every path."""
+    leaves, treedef = jax.tree.flatten(probs)
+    keys = jax.random.split(key, len(leaves))
+    masks = [
+        jax.nn.sigmoid((_logit(p) + jax.random.logistic(k, p.shape, p.dtype)) / tau)
+        for k, p in zip(keys, leaves, strict=True)
+    ]
+    return jax.tree.unflatten(treedef, masks)
+
+
+def _logit(p: jax.Array) -> jax.Array:
+    return jnp.log(jnp.maximum(p, LOGIT_EPS)) - jnp.log(jnp.maximum(1.0 - p, LOGIT_EPS))
 
 
 def bernoulli_mask(key: jax.Array, probs: Tree) -> Tree:

@@ -61,6 +61,24 @@ class Layout:
                 get_operator(name)  # raises a readable error for unknown names
 
 
+# CSP's layouts (the authors' ``sym_arch.py``): 39·n + 379 weights per action dimension, and a
+# five-layer variant with one ``cond`` operator per layer for cheetah_vel_ood (App. C.2).
+CSP_LAYERS: tuple[tuple[str, ...], ...] = (
+    ("mul",) * 3,
+    ("mul",) * 3,
+    ("div",) * 3,
+    ("log", "exp", "sin", "sin", "sin", "cos", "cos", "cos"),
+    ("mul", "div", "log", "exp"),
+    ("mul", "div", "log", "exp"),
+)
+CSP_COND_LAYERS: tuple[tuple[str, ...], ...] = (
+    ("mul",) * 3 + ("cond",),
+    ("mul",) * 3 + ("cond",),
+    ("div",) * 3 + ("cond",),
+    ("log", "exp", "sin", "sin", "sin", "cos", "cos", "cos", "cond"),
+    ("mul", "div", "log", "exp", "cond"),
+)
+
 LAYOUTS: dict[str, Layout] = {
     # The paper's arranged operators, used for every experiment (Fig. 1): 41·n + 496 weights.
     "arranged": Layout(ARRANGED_LAYERS),
@@ -68,6 +86,8 @@ LAYOUTS: dict[str, Layout] = {
     "dense": Layout((("mul", "div", "log", "exp", "sin", "cos"),) * 5),
     # Ablation ESPL_p: no dense links; identity units carry values to the next layer.
     "plain": Layout(tuple(("identity", "identity", *ops) for ops in ARRANGED_LAYERS), dense=False),
+    "csp": Layout(CSP_LAYERS),
+    "csp_cond": Layout(CSP_COND_LAYERS),
 }
 
 

@@ -1,38 +1,62 @@
-"""Single-task ESPL trainer: Algorithm 1 as one jitted ``lax.scan`` per chunk, vmapped over seeds.
+"""One trainer for ESPL (Algorithm 1) and CSP, PEARL and Hyper (Algorithm 2).
 
-One *iteration* (Algorithm 1, lines 3–18): compute τ and l_min from the schedules, sample one
-Bernoulli mask, collect ``steps_per_iteration`` env steps with a ~ tanh(N(SN(s), F(s))) (auto-reset
-between episodes), append them to the replay buffer, then take ``updates_per_iteration`` SAC steps.
-A *chunk* is ``lax.scan`` over iterations; it is compiled once and ``vmap``-ed over seeds. The host
-only runs between chunks (see :mod:`espl_jax.run`).
+A single-task env is the one-task, no-context case: T = 1 task (the env's default params), a
+(0,)-sized latent, no encoder. A meta-RL task family gives T = ``n_train`` training tasks, a
+latent z from PEARL's encoder, and per-task buffers. One *iteration*:
 
-An iteration is split into ``start_iteration`` (keys and mask), ``collect`` and ``learn`` (replay
-insert and the SAC updates), with the exploration action in ``explore``: the host collector for
-gymnasium (Box2D) envs (:mod:`espl_jax.host`) reuses all but ``collect``.
+1. τ and l_min from the schedules (Algorithm 1 lines 3, 8).
+2. Collection (``collect``). ESPL: one Bernoulli mask (line 4), ``steps_per_iteration`` steps on
+   the task, episodes continuing across iterations. Meta-RL (PEARL's ``rl_algorithm``):
+   ``tasks_per_iteration`` distinct training tasks; each has its encoder buffer cleared, then a
+   prior phase (``prior_steps``, z ~ N(0, I) per trajectory, into both buffers) and a posterior
+   phase (``posterior_steps``, z from the posterior of a context drawn from the fresh encoder
+   buffer, per trajectory, into the RL buffer only). CSP draws a Bernoulli mask of σ(Ψ(z)) with
+   every z. Before the first iteration ``warmup`` fills every training task with
+   ``initial_steps`` prior-z steps (both buffers).
+3. ``updates_per_iteration`` SAC steps in one ``lax.scan`` (``espl_jax.sac``).
+
+A *chunk* is a ``lax.scan`` over iterations, compiled once and ``vmap``-ed over seeds; the host
+runs between chunks (``espl_jax.run``). Host-stepped gymnasium envs (Box2D) replace step 2 by
+``espl_jax.host`` and reuse the rest.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 import envs
-from espl_jax import replay, selector
+from espl_jax import pearl, replay, rollout, selector
 from espl_jax.config import Config, UserError
-from espl_jax.sac import SAC, Metrics, TrainState
+from espl_jax.policies import META_ACTORS, SINGLE_TASK_ACTORS, Actor, make_actor
+from espl_jax.rollout import Rollout
+from espl_jax.sac import SAC, Metrics, TrainState, task_keys
 
 
-def make_env(name: str) -> envs.Environment | envs.HostEnv:
-    """``envs.make`` with the unknown-name error turned into a user error."""
+def make_env(name: str):
+    """``envs.make`` / ``envs.make_family`` with the unknown-name error turned into a user error.
+
+    Returns:
+        ``(env, family)``: the env to step (for a family: its env with the family's horizon)
+        and the ``TaskFamily``, or None for a single-task env.
+    """
     try:
-        return envs.make(name)
+        if envs.is_family(name):
+            family = envs.make_family(name)
+            return family.env, family
+        return envs.make(name), None
     except ValueError as err:
         raise UserError(str(err)) from None
+
+
+def _stack(params: Any) -> Any:
+    """A batch of one task: every leaf gets a leading axis of 1."""
+    return jax.tree.map(lambda x: np.asarray(x)[None], params)
 
 
 @dataclass(frozen=True)
@@ -41,25 +65,92 @@ class Trainer:
 
     config: Config
 
+    # What is trained ----------------------------------------------------------------------------
+
     @cached_property
-    def env(self) -> envs.Environment | envs.HostEnv:
-        return make_env(self.config.env)
+    def _env_and_family(self):
+        env, family = make_env(self.config.env)
+        kinds = META_ACTORS if family is not None else SINGLE_TASK_ACTORS
+        if self.config.actor not in kinds:
+            what = "meta-RL task family" if family is not None else "single-task env"
+            raise UserError(
+                f"--actor {self.config.actor} does not apply to {self.config.env}, a {what}; "
+                f"choose one of {', '.join(kinds)}"
+            )
+        return env, family
+
+    @property
+    def env(self):
+        return self._env_and_family[0]
+
+    @property
+    def family(self):
+        """The ``envs.TaskFamily`` of a meta-RL run, else None."""
+        return self._env_and_family[1]
+
+    @property
+    def meta(self) -> bool:
+        return self.family is not None
 
     @property
     def on_host(self) -> bool:
         """The env is a gymnasium env stepped on the host (Box2D): collection and evaluation run
-        in :mod:`espl_jax.host`; ``collect``, ``iteration``, ``chunk`` and ``evaluate`` here are
-        for JAX envs only."""
+        in :mod:`espl_jax.host`."""
         return envs.is_host(self.env)
 
     @cached_property
+    def tasks(self) -> tuple[Any, Any]:
+        """(train, test) task params with a leading task axis. Single-task: the env's default
+        params, once, as both."""
+        # Concrete numpy arrays even when first asked for inside a jit trace (cached_property).
+        with jax.ensure_compile_time_eval():
+            if self.meta:
+                train, test = self.family.tasks(self.config.task_seed)
+                return jax.tree.map(np.asarray, train), jax.tree.map(np.asarray, test)
+            params = None if self.on_host else _stack(self.env.default_params)
+        return params, params
+
+    @property
+    def num_train_tasks(self) -> int:
+        return self.family.n_train if self.meta else 1
+
+    @property
+    def latent_dim(self) -> int:
+        return self.config.latent_dim if self.meta else 0
+
+    @cached_property
+    def actor(self) -> Actor:
+        return make_actor(self.config, self.env.obs_dim, self.env.action_dim, self.latent_dim)
+
+    @cached_property
+    def encoder(self) -> pearl.Encoder | None:
+        if not self.meta:
+            return None
+        use_next = getattr(self.family, "use_next_obs_in_context", True)
+        return pearl.Encoder(self.config.encoder_hidden, self.config.latent_dim, use_next)
+
+    @cached_property
     def sac(self) -> SAC:
-        return SAC(self.config, self.env.obs_dim, self.env.action_dim)
+        return SAC(self.config, self.actor, self.encoder, self.num_train_tasks)
+
+    @property
+    def rollout_slots(self) -> int:
+        """Tasks collected on at once: the single task, or ``tasks_per_iteration``."""
+        return min(self.config.tasks_per_iteration, self.num_train_tasks) if self.meta else 1
+
+    @property
+    def steps_per_iteration(self) -> int:
+        cfg = self.config
+        if not self.meta:
+            return cfg.steps_per_iteration
+        return self.rollout_slots * (cfg.prior_steps + cfg.posterior_steps)
 
     @property
     def buffer_capacity(self) -> int:
         cfg = self.config
-        wanted = min(cfg.buffer_size, cfg.total_env_steps)
+        if self.meta:
+            return cfg.task_buffer_size
+        wanted = min(cfg.buffer_size, cfg.iterations * cfg.steps_per_iteration)
         return replay.capacity_for(wanted, cfg.steps_per_iteration)
 
     # State ---------------------------------------------------------------------------------
@@ -70,19 +161,32 @@ class Trainer:
         For a host env there is no env state in JAX: ``env_state`` is None and ``obs`` zeros
         until the host collector resets its envs (see :mod:`espl_jax.host`).
         """
+        cfg, env = self.config, self.env
         key, k_learner, k_reset = jax.random.split(key, 3)
-        if self.on_host:
-            obs, env_state = jnp.zeros(self.env.obs_dim), None
+        slots = self.rollout_slots
+        if self.on_host:  # the host collector owns the envs; these are placeholders
+            state = Rollout(
+                None,
+                jnp.zeros((slots, env.obs_dim)),
+                jnp.zeros((slots,)),
+                jnp.zeros((slots, env.action_dim)),
+            )
         else:
-            obs, env_state = self.env.reset(k_reset, self.env.default_params)
+            params = jax.tree.map(lambda x: x[:slots], self.tasks[0])
+            state = jax.vmap(lambda k, p: rollout.reset(env, p, k, env.action_dim))(
+                task_keys(k_reset, slots), params
+            )
+        tasks = self.num_train_tasks
+        encoder_buffer = None
+        if self.meta:
+            capacity = max(cfg.initial_steps, cfg.prior_steps)
+            encoder_buffer = replay.init(tasks, capacity, env.obs_dim, env.action_dim)
         zero_i = jnp.zeros((), jnp.int32)
         return TrainState(
             **self.sac.init_learner(k_learner),
-            buffer=replay.init(self.buffer_capacity, self.env.obs_dim, self.env.action_dim),
-            env_state=env_state,
-            obs=obs,
-            episode_return=jnp.zeros(()),
-            exploration_noise=jnp.zeros(self.env.action_dim),
+            buffer=replay.init(tasks, self.buffer_capacity, env.obs_dim, env.action_dim),
+            encoder_buffer=encoder_buffer,
+            rollout=state,
             key=key,
             iteration=zero_i,
             env_steps=zero_i,
@@ -96,44 +200,34 @@ class Trainer:
 
     # Collection -----------------------------------------------------------------------------
 
-    def explore(
-        self, actor_params: dict, mask: list | None, obs: jax.Array, eps: jax.Array, key: jax.Array
-    ) -> tuple[jax.Array, jax.Array]:
-        """One exploration step for one observation: the action and the new noise ε.
+    def _collect(self, r, task_params, policy, mask, key, steps, draw=None):
+        return rollout.collect(
+            self.env, self.actor, self.config.exploration_correlation,
+            r, task_params, policy, mask, key, steps, draw,
+        )  # fmt: skip
 
-        The action is tanh(μ + σ ε). With ``exploration_correlation`` ρ > 0, ε is an AR(1)
-        process, ε_t = ρ ε_{t−1} + √(1−ρ²) ξ_t: still N(0, 1) at every step, so the policy's
-        distribution per step is unchanged, but successive pushes agree for ~1/(1−ρ) steps
-        (temporally correlated exploration; white noise, ρ = 0, is plain SAC). Both collectors
-        (``collect`` in JAX, :mod:`espl_jax.host` for host envs) act through this function.
-        """
-        rho = self.config.exploration_correlation
-        eps = rho * eps + math.sqrt(1.0 - rho**2) * jax.random.normal(key, eps.shape)
-        return self.sac.actor.act_with_noise(actor_params, mask, obs, eps), eps
+    def start_iteration(self, key: jax.Array, actor_params: dict):
+        """ESPL's iteration randomness: (next state key, Bernoulli mask, collect key, update
+        key). The mask is Algorithm 1, line 4; one mask serves the whole collection."""
+        key, k_mask, k_collect, k_update = jax.random.split(key, 4)
+        policy = self.actor.at(actor_params, jnp.zeros((0,)))
+        return key, self.actor.collect_mask(k_mask, policy), k_collect, k_update
 
     def record_collection(
         self,
         state: TrainState,
         *,
-        env_state: Any,
-        obs: jax.Array,
-        episode_return: jax.Array,
-        exploration_noise: jax.Array,
+        rollout_state: Rollout,
         done: jax.Array,
         finished_returns: jax.Array,
+        steps: int,
     ) -> tuple[TrainState, Metrics]:
-        """The state and metrics after K collection steps (shared by both collectors).
-
-        ``done`` (K,) marks the steps that ended an episode, ``finished_returns`` (K,) holds the
-        return of the episode ended at that step (0 elsewhere).
-        """
+        """The state and metrics after collection (shared by the JAX and host collectors);
+        ``done`` and ``finished_returns`` cover every collected step (any shape)."""
         finished = jnp.sum(done)
         state = state.replace(
-            env_state=env_state,
-            obs=obs,
-            episode_return=episode_return,
-            exploration_noise=exploration_noise,
-            env_steps=state.env_steps + self.config.steps_per_iteration,
+            rollout=rollout_state,
+            env_steps=state.env_steps + steps,
             episodes=state.episodes + finished,
         )
         metrics = {
@@ -142,55 +236,107 @@ class Trainer:
         }
         return state, metrics
 
-    def collect(
-        self, state: TrainState, mask: list | None, key: jax.Array
-    ) -> tuple[TrainState, replay.Transition, Metrics]:
-        """K env steps with one fixed mask (Algorithm 1, lines 5–7); resets finished episodes.
-
-        Actions come from :meth:`explore`. Only ``terminated`` is stored; at a time-limit end the
-        stored next_obs is the true next observation, not the reset one.
-        """
-        env, params = self.env, self.env.default_params
-
-        def step(carry, k):
-            env_state, obs, ep_return, eps = carry
-            k_act, k_env, k_reset = jax.random.split(k, 3)
-            action, eps = self.explore(state.actor, mask, obs, eps, k_act)
-            next_obs, next_state, reward, terminated, truncated, _ = env.step(
-                k_env, env_state, action, params
-            )
-            done = terminated | truncated
-            reset_obs, reset_state = env.reset(k_reset, params)
-            env_state = jax.tree.map(lambda r, n: jnp.where(done, r, n), reset_state, next_state)
-            ep_return = ep_return + reward
-            out = (
-                replay.Transition(obs, action, reward, next_obs, terminated),
-                done,
-                jnp.where(done, ep_return, 0.0),
-            )
-            carry = (
-                env_state,
-                jnp.where(done, reset_obs, next_obs),
-                jnp.where(done, 0.0, ep_return),
-                eps,
-            )
-            return carry, out
-
-        keys = jax.random.split(key, self.config.steps_per_iteration)
-        carry = (state.env_state, state.obs, state.episode_return, state.exploration_noise)
-        (env_state, obs, ep_return, eps), (transitions, done, finished_returns) = jax.lax.scan(
-            step, carry, keys
+    def collect_single(self, state: TrainState, mask: Any, key: jax.Array):
+        """ESPL: K steps on the one task with one fixed mask (Algorithm 1, lines 5–7)."""
+        policy = self.actor.at(state.actor, jnp.zeros((0,)))
+        steps = self.config.steps_per_iteration
+        r, transitions, done, finished = jax.vmap(
+            lambda r, p, k: self._collect(r, p, policy, mask, k, steps)
+        )(state.rollout, self.tasks[0], task_keys(key, 1))
+        one_task = jnp.zeros(1, jnp.int32)
+        state = state.replace(buffer=replay.insert(state.buffer, one_task, transitions))
+        return self.record_collection(
+            state, rollout_state=r, done=done, finished_returns=finished, steps=steps
         )
-        state, metrics = self.record_collection(
+
+    def _draw(self, params: dict, mu: jax.Array, var: jax.Array):
+        """draw(key) -> (task policy, mask) for z ~ N(mu, var) (CSP: with a Bernoulli mask)."""
+
+        def draw(key):
+            k_z, k_mask = jax.random.split(key)
+            policy = self.actor.at(params, pearl.sample(k_z, mu, var))
+            return policy, self.actor.collect_mask(k_mask, policy)
+
+        return draw
+
+    def _meta_phase(self, state, tasks, key, steps, posterior, to_encoder):
+        """One PEARL collection phase on the distinct ``tasks`` [R]: reset, ``steps`` steps with
+        a z per trajectory from the prior or (``posterior``) from q(z | fresh context)."""
+        env, cfg = self.env, self.config
+        n = tasks.shape[0]
+        k_reset, k_context, k_collect = jax.random.split(key, 3)
+        task_params = jax.tree.map(lambda x: x[tasks], self.tasks[0])
+        latent = self.latent_dim
+        if posterior:
+            context = replay.sample(
+                state.encoder_buffer, tasks, jax.random.split(k_context, n), cfg.context_batch
+            )
+            mu, var = jax.vmap(self.encoder.posterior, (None, 0))(state.encoder, context)
+        else:
+            mu, var = jnp.zeros((n, latent)), jnp.ones((n, latent))
+
+        def one(p, k_r, k_c, mu_t, var_t):
+            r = rollout.reset(env, p, k_r, env.action_dim)
+            draw = self._draw(state.actor, mu_t, var_t)
+            # Replaced at the first step; it only fixes the structure of the scan's carry.
+            policy, mask = draw(jax.random.fold_in(k_c, 2))
+            return self._collect(r, p, policy, mask, k_c, steps, draw)
+
+        r, transitions, done, finished = jax.vmap(one)(
+            task_params, jax.random.split(k_reset, n), jax.random.split(k_collect, n), mu, var
+        )
+        state = state.replace(buffer=replay.insert(state.buffer, tasks, transitions))
+        if to_encoder:
+            state = state.replace(
+                encoder_buffer=replay.insert(state.encoder_buffer, tasks, transitions)
+            )
+        return state, r, done, finished
+
+    def collect_meta(self, state: TrainState, key: jax.Array) -> tuple[TrainState, Metrics]:
+        """PEARL's collection for one iteration (module docstring, step 2)."""
+        cfg = self.config
+        k_tasks, k_prior, k_posterior = jax.random.split(key, 3)
+        tasks = jax.random.choice(
+            k_tasks, self.num_train_tasks, (self.rollout_slots,), replace=False
+        )
+        state = state.replace(encoder_buffer=replay.clear(state.encoder_buffer, tasks))
+        state, r, done, finished = self._meta_phase(
+            state, tasks, k_prior, cfg.prior_steps, posterior=False, to_encoder=True
+        )
+        dones, returns = [done], [finished]
+        if cfg.posterior_steps:
+            state, r, done, finished = self._meta_phase(
+                state, tasks, k_posterior, cfg.posterior_steps, posterior=True, to_encoder=False
+            )
+            dones.append(done)
+            returns.append(finished)
+        return self.record_collection(
             state,
-            env_state=env_state,
-            obs=obs,
-            episode_return=ep_return,
-            exploration_noise=eps,
-            done=done,
-            finished_returns=finished_returns,
+            rollout_state=r,
+            done=jnp.concatenate([d.ravel() for d in dones]),
+            finished_returns=jnp.concatenate([f.ravel() for f in returns]),
+            steps=self.steps_per_iteration,
         )
-        return state, transitions, metrics
+
+    def warmup(self, state: TrainState) -> TrainState:
+        """Before the first iteration: ``initial_steps`` prior-z steps on every training task,
+        into both buffers (PEARL's ``num_initial_steps``). Single-task runs have none."""
+        if not self.meta or not self.config.initial_steps:
+            return state
+        key, k_warmup = jax.random.split(state.key)
+        tasks = jnp.arange(self.num_train_tasks)
+        state, r, done, _ = self._meta_phase(
+            state.replace(key=key), tasks, k_warmup, self.config.initial_steps,
+            posterior=False, to_encoder=True,
+        )  # fmt: skip
+        return state.replace(
+            env_steps=state.env_steps + self.num_train_tasks * self.config.initial_steps,
+            episodes=state.episodes + jnp.sum(done),
+        )
+
+    def compiled_warmup(self):
+        """jit(vmap(warmup)) over seeds; the state buffers are donated."""
+        return jax.jit(jax.vmap(self.warmup), donate_argnums=0)
 
     # One iteration and a chunk of them --------------------------------------------------------
 
@@ -201,27 +347,12 @@ class Trainer:
         l_min = selector.l_min_schedule(t, cfg.schedule_iterations, cfg.target_l0_ratio)
         return tau, l_min
 
-    def start_iteration(
-        self, key: jax.Array, actor_params: dict
-    ) -> tuple[jax.Array, list | None, jax.Array, jax.Array]:
-        """The iteration's randomness: (next state key, Bernoulli mask, collect key, update key).
-
-        The mask is Algorithm 1, line 4; one mask serves the whole collection of the iteration.
-        """
-        key, k_mask, k_collect, k_update = jax.random.split(key, 4)
-        return key, self.sac.actor.collect_mask(k_mask, actor_params), k_collect, k_update
-
     def learn(
-        self,
-        state: TrainState,
-        transitions: replay.Transition,
-        collect_metrics: Metrics,
-        key: jax.Array,
+        self, state: TrainState, collect_metrics: Metrics, key: jax.Array
     ) -> tuple[TrainState, Metrics]:
-        """The rest of an iteration after collection: store the K transitions, take
-        ``updates_per_iteration`` SAC steps in one scan (Algorithm 1, lines 8–17), count it."""
+        """The rest of an iteration after collection: ``updates_per_iteration`` SAC steps in one
+        scan (Algorithm 1, lines 8–17; Algorithm 2, lines 13–30), counted."""
         tau, l_min = self.schedules(state.iteration)
-        state = state.replace(buffer=replay.insert(state.buffer, transitions))
 
         def update(s, k):
             return self.sac.update(s, k, tau, l_min)
@@ -229,12 +360,15 @@ class Trainer:
         keys = jax.random.split(key, self.config.updates_per_iteration)
         state, u_metrics = jax.lax.scan(update, state, keys)
         state = state.replace(iteration=state.iteration + 1)
+        u_metrics = jax.tree.map(jnp.mean, u_metrics)
+        batch_l0 = u_metrics.pop("batch_l0_ratio")
         metrics = {
             **collect_metrics,
-            **jax.tree.map(jnp.mean, u_metrics),
+            **u_metrics,
             "tau": tau,
             "l_min": l_min,
-            "l0_ratio": self.l0_ratio(state),
+            # ESPL: E||m||_0 / N of the learned p; meta-RL: of σ(Ψ(z)), over the updates' tasks
+            "l0_ratio": batch_l0 if self.meta else self.l0_ratio(state),
             "env_steps": state.env_steps,
             "episodes": state.episodes,
             "iteration": state.iteration,
@@ -242,17 +376,18 @@ class Trainer:
         return state, metrics
 
     def iteration(self, state: TrainState) -> tuple[TrainState, Metrics]:
-        """One iteration of Algorithm 1 in JAX (collection in the JAX env, then ``learn``)."""
+        """One iteration of Algorithm 1 or 2 in JAX (collection, then ``learn``)."""
+        if self.meta:
+            key, k_collect, k_update = jax.random.split(state.key, 3)
+            state, c_metrics = self.collect_meta(state.replace(key=key), k_collect)
+            return self.learn(state, c_metrics, k_update)
         key, mask, k_collect, k_update = self.start_iteration(state.key, state.actor)
-        state, transitions, c_metrics = self.collect(state, mask, k_collect)
-        return self.learn(state.replace(key=key), transitions, c_metrics, k_update)
+        state, c_metrics = self.collect_single(state, mask, k_collect)
+        return self.learn(state.replace(key=key), c_metrics, k_update)
 
     def l0_ratio(self, state: TrainState) -> jax.Array:
-        """E||m||_0 / N: the fraction of paths the selector keeps in expectation (1 without one)."""
-        probs = state.actor["probs"]
-        if not probs:
-            return jnp.ones(())
-        return selector.expected_l0(probs) / selector.count(probs)
+        """Single task: E||m||_0 / N, the fraction of paths the selector keeps (1 without one)."""
+        return self.actor.l0_ratio(self.actor.at(state.actor, jnp.zeros((0,))))
 
     def chunk(self, state: TrainState, length: int) -> tuple[TrainState, Metrics]:
         """``length`` iterations in one scan, for one seed."""
@@ -262,32 +397,42 @@ class Trainer:
         """jit(vmap(chunk)) over the leading seed axis; the state buffers are donated."""
         return jax.jit(jax.vmap(lambda s: self.chunk(s, length)), donate_argnums=0)
 
-    # Deterministic evaluation in JAX ---------------------------------------------------------
+    # Evaluation in JAX -----------------------------------------------------------------------
 
     def evaluate(self, actor_params: dict, key: jax.Array, episodes: int) -> jax.Array:
-        """Returns of ``episodes`` deterministic episodes (eval mask: the exported formula)."""
-        env, actor, params = self.env, self.sac.actor, self.env.default_params
-        mask = actor.eval_mask(actor_params)
-        k_reset, k_run = jax.random.split(key)
-        obs, env_state = jax.vmap(env.reset, (0, None))(jax.random.split(k_reset, episodes), params)
-
-        def step(carry, k):
-            obs, env_state, total, done = carry
-            action = jax.vmap(actor.deterministic, (None, None, 0))(actor_params, mask, obs)
-            keys = jax.random.split(k, episodes)
-            obs, env_state, reward, terminated, truncated, _ = jax.vmap(env.step, (0, 0, 0, None))(
-                keys, env_state, action, params
-            )
-            total = total + jnp.where(done, 0.0, reward)
-            return (obs, env_state, total, done | terminated | truncated), None
-
-        init = (obs, env_state, jnp.zeros(episodes), jnp.zeros(episodes, bool))
-        (_, _, total, _), _ = jax.lax.scan(step, init, jax.random.split(k_run, env.horizon))
-        return total
+        """Single task: returns of ``episodes`` deterministic episodes of the eval-mask policy
+        (the exported formula)."""
+        policy = self.actor.at(actor_params, jnp.zeros((0,)))
+        params = jax.tree.map(lambda x: x[0], self.tasks[0])
+        return rollout.evaluate(
+            self.env, self.actor, policy, self.actor.eval_mask(policy), params, key, episodes
+        )
 
     def compiled_evaluate(self, episodes: int):
-        """jit(vmap(evaluate)) over seeds: (actor params [S, ...], keys [S, 2]) -> [S, E].
-
-        JAX envs only; ``host.HostEvaluator`` is the counterpart for host envs.
-        """
+        """jit(vmap(evaluate)) over seeds: (actor params [S, ...], keys [S, 2]) -> [S, E]."""
         return jax.jit(jax.vmap(lambda p, k: self.evaluate(p, k, episodes)))
+
+    def adapt(self, state: TrainState, task_params: Any, key: jax.Array) -> rollout.Adapted:
+        """Meta-RL: PEARL's protocol, ``eval_runs`` runs on each task of ``task_params`` [N]:
+        an ``Adapted`` with leaves [N, runs]."""
+        cfg = self.config
+        n = jax.tree.leaves(task_params)[0].shape[0]
+
+        def one(p, k):
+            return rollout.adapt_and_evaluate(
+                self.env, self.actor, self.encoder, state.actor, state.encoder, p, k,
+                cfg.eval_steps, cfg.eval_exploration_trajectories,
+            )  # fmt: skip
+
+        keys = jax.random.split(key, n * cfg.eval_runs).reshape(n, cfg.eval_runs, -1)
+        return jax.vmap(jax.vmap(one, (None, 0)), (0, 0))(task_params, keys)
+
+    def compiled_adapt(self, split: str):
+        """jit(vmap(adapt)) over seeds on the "test" or "train" tasks: (state, keys [S, 2])."""
+        params = self.tasks[1] if split == "test" else self.tasks[0]
+        return jax.jit(jax.vmap(lambda s, k: self.adapt(s, params, k)))
+
+    def task_policy(self, actor_params: dict, z: np.ndarray | None) -> dict:
+        """The task policy at z (numpy), for export: ESPL's own params, CSP's Φ/Ψ at z."""
+        z = jnp.zeros((0,)) if z is None else jnp.asarray(z)
+        return jax.tree.map(np.asarray, self.actor.at(actor_params, z))

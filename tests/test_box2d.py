@@ -194,7 +194,7 @@ def test_host_run_resumes_from_its_checkpoint(stopped_mlp_run, tmp_path):
     stopped_rows = run.read_metrics(run_dir / run.METRICS_FILE)
     assert [r["iteration"] for r in stopped_rows] == [1, 1]
     _, stopped, step = run.load_run(run_dir)
-    assert step == 1 and stopped.env_state is None
+    assert step == 1 and stopped.rollout.env_state is None
     np.testing.assert_array_equal(stopped.iteration, [1, 1])
 
     result = run.train(cfg, run_dir, resume=True, show_progress=False)

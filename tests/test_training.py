@@ -26,11 +26,10 @@ import yaml
 from conftest import TINY, TINY_MLP
 
 import envs
-from espl_jax import checkpoint, evaluation, faults, replay, run
+from espl_jax import checkpoint, evaluation, faults, replay, rollout, run
 from espl_jax import config as config_lib
-from espl_jax.networks import tanh_gaussian_log_prob
+from espl_jax.policies import MLPActor, tanh_gaussian_log_prob
 from espl_jax.sac import SAC, TrainState
-from espl_jax.trainer import Trainer
 
 REPO = Path(__file__).resolve().parent.parent
 pytestmark = pytest.mark.usefixtures("jax_cache")
@@ -408,43 +407,43 @@ def _mlp_sac(**overrides):
         {"actor": "mlp", "critic_hidden": [16, 16], "std_hidden": [8], "mlp_actor_hidden": [8],
          **overrides}
     )  # fmt: skip
-    return SAC(cfg, obs_dim=4, action_dim=1)
+    return SAC(cfg, MLPActor(cfg, obs_dim=4, action_dim=1), encoder=None, num_tasks=1)
 
 
 def test_critic_target_bootstraps_unless_terminated():
     gamma, scale = 0.9, 2.0
     sac = _mlp_sac(gamma=gamma, reward_scale=scale)
     learner = sac.init_learner(jax.random.PRNGKey(0))
+    z = jnp.zeros((0,))
     # A target critic that differs from the critic, and α ≠ 1, so every term of y matters.
-    learner["target_critic"] = sac.critic.init(jax.random.PRNGKey(7), jnp.zeros(4), jnp.zeros(1))
+    learner["target_critic"] = sac.critic.init(jax.random.PRNGKey(7), jnp.zeros(4), jnp.zeros(1), z)
     learner["log_alpha"] = jnp.asarray(-0.7)
     state = TrainState(
-        **learner, buffer=None, env_state=None, obs=None, episode_return=None,
-        exploration_noise=None, key=None,
+        **learner, buffer=None, encoder_buffer=None, rollout=None, key=None,
         iteration=None, env_steps=None, episodes=None,
     )  # fmt: skip
     rng = np.random.default_rng(0)
-    obs, next_obs = (jnp.asarray(rng.normal(size=(1, 4)), jnp.float32) for _ in range(2))
-    action, reward = jnp.asarray([[0.3]]), jnp.asarray([0.7])
+    obs, next_obs = (jnp.asarray(rng.normal(size=(1, 1, 4)), jnp.float32) for _ in range(2))
+    action, reward = jnp.asarray([[[0.3]]]), jnp.asarray([[0.7]])  # [tasks, batch, ...]
     key = jax.random.PRNGKey(3)
 
     @jax.jit
     def loss(terminated):
         batch = replay.Transition(obs, action, reward, next_obs, terminated)
-        return sac.critic_loss(state.critic, state, batch, key)[0]
+        return sac.critic_loss(state.critic, None, state, batch, None, key)[0]
 
-    bootstrapped = float(loss(jnp.asarray([False])))
-    terminal = float(loss(jnp.asarray([True])))
+    bootstrapped = float(loss(jnp.asarray([[False]])))
+    terminal = float(loss(jnp.asarray([[True]])))
 
     # The soft value of s' from the same key: min of the target Qs minus α log π.
     _, k_act = jax.random.split(key)
     a2, log_prob, _ = sac.actor.sample(
-        jax.random.split(k_act, 1)[0], state.actor, None, next_obs[0]
+        jax.random.split(k_act, 1)[0], state.actor, None, next_obs[0, 0]
     )
     soft_next = float(
-        sac.critic.apply(state.target_critic, next_obs[0], a2).min() - np.exp(-0.7) * log_prob
+        sac.critic.apply(state.target_critic, next_obs[0, 0], a2, z).min() - np.exp(-0.7) * log_prob
     )
-    q = np.asarray(sac.critic.apply(state.critic, obs[0], action[0]), np.float64)
+    q = np.asarray(sac.critic.apply(state.critic, obs[0, 0], action[0, 0], z), np.float64)
     y_terminal = scale * 0.7
     np.testing.assert_allclose(terminal, np.sum((q - y_terminal) ** 2), rtol=1e-5)
     np.testing.assert_allclose(
@@ -453,18 +452,32 @@ def test_critic_target_bootstraps_unless_terminated():
     assert abs(gamma * soft_next) > 1e-3  # the two cases really differ
 
 
+def _collect(cfg, env, zero_actor=False):
+    """One collection of ``cfg.steps_per_iteration`` steps of a fresh MLP actor in ``env``."""
+    actor = MLPActor(cfg, env.obs_dim, env.action_dim)
+    params = actor.init(jax.random.PRNGKey(0))
+    if zero_actor:
+        params = jax.tree.map(jnp.zeros_like, params)
+    start = rollout.reset(env, env.default_params, jax.random.PRNGKey(2), env.action_dim)
+
+    @jax.jit
+    def run_collect(r, key):
+        return rollout.collect(
+            env, actor, cfg.exploration_correlation, r, env.default_params, params, None, key,
+            cfg.steps_per_iteration,
+        )  # fmt: skip
+
+    _, transitions, done, _ = run_collect(start, jax.random.PRNGKey(1))
+    return transitions, np.asarray(done)
+
+
 def test_truncation_is_stored_as_not_terminated():
     """Time-limit ends reset the env but are not ``terminated``: the critic bootstraps there."""
     cfg = config_lib.from_mapping(
         {**TINY_MLP, "steps_per_iteration": 12, "buffer_size": 12, "iterations": 1}
     )
-    trainer = Trainer(cfg)
-    trainer.__dict__["env"] = envs.make("cartpole", horizon=5)  # cached_property: a short limit
-    state = jax.jit(trainer.init)(jax.random.PRNGKey(0))
-    _, transitions, metrics = jax.jit(lambda s, k: trainer.collect(s, None, k))(
-        state, jax.random.PRNGKey(1)
-    )
-    assert int(metrics["episodes_finished"]) == 2  # truncated after steps 5 and 10
+    transitions, done = _collect(cfg, envs.make("cartpole", horizon=5))
+    assert int(done.sum()) == 2  # truncated after steps 5 and 10
     assert not np.asarray(transitions.terminated).any()
     obs, next_obs = np.asarray(transitions.obs), np.asarray(transitions.next_obs)
     continues = np.all(next_obs[:-1] == obs[1:], axis=1)
@@ -480,13 +493,8 @@ def test_exploration_noise_is_standard_normal_with_lag_one_correlation_rho(rho):
         {**TINY_MLP, "env": "pendulum", "steps_per_iteration": steps, "buffer_size": steps,
          "iterations": 1, "exploration_correlation": rho}
     )  # fmt: skip
-    trainer = Trainer(cfg)
-    state = jax.jit(trainer.init)(jax.random.PRNGKey(0))
     # A zero actor has μ = 0 and σ = exp(0) = 1, so the action is tanh(ε): ε = artanh(a).
-    state = state.replace(actor=jax.tree.map(jnp.zeros_like, state.actor))
-    _, transitions, _ = jax.jit(lambda s, k: trainer.collect(s, None, k))(
-        state, jax.random.PRNGKey(1)
-    )
+    transitions, _ = _collect(cfg, envs.make("pendulum"), zero_actor=True)
     eps = np.arctanh(np.asarray(transitions.action, np.float64)[:, 0])
     assert np.all(np.isfinite(eps))
     assert abs(eps.mean()) < 0.2 and abs(eps.std() - 1.0) < 0.1
@@ -506,33 +514,35 @@ def test_checkpoint_round_trip_keeps_zero_size_arrays(tmp_path):
 
 
 def test_replay_insert_wraps_and_size_saturates():
-    buffer = replay.init(capacity=6, obs_dim=2, action_dim=1)
+    buffer = replay.init(tasks=1, capacity=6, obs_dim=2, action_dim=1)
+    task = jnp.zeros(1, jnp.int32)
 
     def batch(start):
         r = jnp.arange(start, start + 2, dtype=jnp.float32)
-        return replay.Transition(
+        t = replay.Transition(
             jnp.stack([r, r], 1), r[:, None], r, jnp.stack([r, r], 1) + 1, r > 100
         )
+        return jax.tree.map(lambda x: x[None], t)
 
-    insert = jax.jit(replay.insert)
+    insert = jax.jit(lambda b, t: replay.insert(b, task, t))
     sizes, positions = [], []
     for k in range(4):
         buffer = insert(buffer, batch(10 * k))
-        sizes.append(int(buffer.size))
-        positions.append(int(buffer.position))
+        sizes.append(int(buffer.size[0]))
+        positions.append(int(buffer.position[0]))
     assert sizes == [2, 4, 6, 6]
     assert positions == [2, 4, 0, 2]
     # The fourth batch overwrote the oldest entries (indices 0 and 1), the rest is kept.
-    np.testing.assert_array_equal(buffer.data.reward, [30, 31, 10, 11, 20, 21])
-    np.testing.assert_array_equal(buffer.data.obs[:, 0], buffer.data.reward)
+    np.testing.assert_array_equal(buffer.data.reward[0], [30, 31, 10, 11, 20, 21])
+    np.testing.assert_array_equal(buffer.data.obs[0, :, 0], buffer.data.reward[0])
 
-    sample = jax.jit(replay.sample, static_argnums=2)
-    partial = insert(replay.init(6, 2, 1), batch(50))
+    sample = jax.jit(lambda b, k, n: replay.sample(b, task, k[None], n), static_argnums=2)
+    partial = insert(replay.init(1, 6, 2, 1), batch(50))
     drawn = sample(partial, jax.random.PRNGKey(0), 64)
-    assert set(np.asarray(drawn.reward).tolist()) == {50.0, 51.0}  # only valid entries
+    assert set(np.asarray(drawn.reward).ravel().tolist()) == {50.0, 51.0}  # only valid entries
     full = sample(buffer, jax.random.PRNGKey(0), 256)
-    assert set(np.asarray(full.reward).tolist()) == {30, 31, 10, 11, 20, 21}
-    np.testing.assert_array_equal(full.next_obs[:, 0], full.reward + 1)  # rows stay aligned
+    assert set(np.asarray(full.reward).ravel().tolist()) == {30, 31, 10, 11, 20, 21}
+    np.testing.assert_array_equal(full.next_obs[..., 0], full.reward + 1)  # rows stay aligned
     assert replay.capacity_for(10, 4) == 12 and replay.capacity_for(8, 4) == 8
 
 
