@@ -7,6 +7,12 @@ Usage::
     obs, state = env.reset(key, env.default_params)
     obs, state, reward, terminated, truncated, info = env.step(key, state, action, params)
 
+Meta-RL task families (``envs/tasks.py``): an env plus seeded train/test task sets, each a batch
+of the env's params with a leading task axis::
+
+    family = envs.make_family("hopper_params")
+    train, test = family.tasks(seed=0)
+
 To add an environment, add ``name -> factory`` to ``_REGISTRY`` below (or call ``register``). A
 factory is any callable returning an ``Environment``; keep heavy imports (MJX, Box2D) inside the
 factory so ``import envs`` stays cheap (``envs.box2d`` imports gymnasium only when an env is
@@ -22,10 +28,11 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from envs import box2d
+from envs import box2d, tasks
 from envs.base import Environment, time_limit
 from envs.box2d import HostEnv
 from envs.classic import CartPole, MountainCar, Pendulum
+from envs.tasks import TaskFamily
 
 # A registry entry builds either a functional JAX env or, for the Box2D tasks, a ``HostEnv``: a
 # description of a gymnasium env that the trainer steps on the host (see envs/box2d.py).
@@ -60,6 +67,7 @@ _REGISTRY: dict[str, EnvFactory] = {
 }
 
 KNOWN_ENVS: tuple[str, ...] = tuple(sorted(_REGISTRY))
+KNOWN_FAMILIES: tuple[str, ...] = tuple(sorted(tasks.FAMILIES))
 
 
 def register(name: str, factory: EnvFactory) -> None:
@@ -70,8 +78,8 @@ def register(name: str, factory: EnvFactory) -> None:
         factory: callable ``factory(**kwargs) -> Environment``.
     """
     global KNOWN_ENVS
-    if name in _REGISTRY:
-        raise ValueError(f"environment {name!r} is already registered")
+    if name in _REGISTRY or name in tasks.FAMILIES:
+        raise ValueError(f"environment {name!r} is already registered (as an env or a family)")
     _REGISTRY[name] = factory
     KNOWN_ENVS = tuple(sorted(_REGISTRY))
 
@@ -93,22 +101,60 @@ def make(name: str, **kwargs) -> Environment | HostEnv:
         Box2D envs (``is_host``).
 
     Raises:
-        ValueError: ``name`` is not registered; the message lists the known names.
+        ValueError: ``name`` is not registered; the message lists the known env names and the
+            task families (a family name is refused too: build it with ``make_family``).
     """
+    if name in tasks.FAMILIES:
+        raise ValueError(
+            f"{name!r} is a meta-RL task family, not an environment; use envs.make_family({name!r})"
+        )
     if name not in _REGISTRY:
-        raise ValueError(f"unknown environment {name!r}; known: {', '.join(sorted(_REGISTRY))}")
+        raise ValueError(
+            f"unknown environment {name!r}; known: {', '.join(sorted(_REGISTRY))}; "
+            f"meta-RL task families: {', '.join(KNOWN_FAMILIES)}"
+        )
     return _REGISTRY[name](**kwargs)
+
+
+def is_family(name: str) -> bool:
+    """Whether ``name`` is a registered meta-RL task family (``make_family``)."""
+    return name in tasks.FAMILIES
+
+
+def make_family(name: str) -> TaskFamily:
+    """Builds a meta-RL task family (``envs/tasks.py``; paper App. B.2).
+
+    Args:
+        name: one of ``KNOWN_FAMILIES``.
+
+    Returns:
+        The ``TaskFamily``: its env (built with the family's horizon), task counts, and the
+        seeded ``tasks(seed) -> (train, test)`` params batches.
+
+    Raises:
+        ValueError: ``name`` is not a family; the message lists the known families.
+    """
+    if name not in tasks.FAMILIES:
+        raise ValueError(
+            f"unknown task family {name!r}; known: {', '.join(KNOWN_FAMILIES)}"
+            + (f" ({name!r} is a single-task environment: envs.make)" if name in _REGISTRY else "")
+        )
+    return tasks.FAMILIES[name]()
 
 
 __all__ = [
     "KNOWN_ENVS",
+    "KNOWN_FAMILIES",
     "CartPole",
     "Environment",
     "HostEnv",
     "MountainCar",
     "Pendulum",
+    "TaskFamily",
+    "is_family",
     "is_host",
     "make",
+    "make_family",
     "register",
     "time_limit",
 ]

@@ -12,7 +12,9 @@ on gymnasium's cart-pole model:
 * ``halfcheetah``: ``HalfCheetah-v5`` (``half_cheetah_v5.py``, ``assets/half_cheetah.xml``);
 * ``inverted_pendulum_swingup``: PyBullet's ``InvertedPendulumSwingupBulletEnv-v0``
   (``pybullet_envs/gym_pendulum_envs.py``, ``robot_pendula.py``) on
-  ``assets/inverted_pendulum.xml``, modified at load time (see ``InvertedPendulumSwingup``).
+  ``assets/inverted_pendulum.xml``, modified at load time (see ``InvertedPendulumSwingup``);
+* ``HalfCheetahVel``: HalfCheetah-v5 with the target-velocity reward of the meta-RL family
+  ``cheetah_vel_ood`` (``envs/tasks.py``); not in ``MJX_ENVS`` (no single-task benchmark).
 
 The XML files are read at runtime from the installed gymnasium package (not copied into this
 repo). The four gymnasium models load into MJX unchanged; only the swing-up model is modified.
@@ -436,6 +438,59 @@ class HalfCheetah(_Locomotion):
         return reward, terminated, info
 
 
+@struct.dataclass
+class CheetahVelParams(MjxParams):
+    """``MjxParams`` plus the task of ``cheetah_vel_ood``: the target forward velocity.
+
+    Attributes:
+        target_velocity: float32 (), the target velocity ``v*`` of the root, in m/s.
+    """
+
+    target_velocity: jax.Array
+
+
+class HalfCheetahVel(HalfCheetah):
+    """HalfCheetah with a target velocity: the env of the meta-RL family ``cheetah_vel_ood``.
+
+    The authors' CSP ``rlkit/envs/half_cheetah_vel_ood.py`` (guojm14/ESPL, after MAML's
+    ``half_cheetah_env_rand.py``): reward ``-|v - v*| - 0.5 * 1e-1 * ||a||^2`` with ``v =
+    (qpos_after[0] - qpos_before[0]) / dt`` (dt 0.05 s) and ``a`` the action in env units
+    (``ctrlrange`` +-1, so equal to the normalized action); never terminates. Model, frame skip,
+    reset noise and observation are ``HalfCheetah``'s (gymnasium v5, obs (17,)); PEARL's
+    ``half_cheetah.py``, under the authors' class, also appends the torso's COM (obs (20,)).
+
+    ``v*`` is ``params.target_velocity`` (``CheetahVelParams``), so a vmapped batch of params is
+    a batch of tasks; the default 0.0 is the authors' fallback (``get('velocity', 0.0)``).
+    """
+
+    env_name = "halfcheetah_vel"
+    ctrl_cost_weight = 0.05
+    default_target_velocity = 0.0
+
+    @property
+    def default_params(self) -> CheetahVelParams:
+        """The model's own physics and ``target_velocity`` 0.0."""
+        physics = super().default_params
+        return CheetahVelParams(
+            **vars(physics),
+            target_velocity=jnp.asarray(self.default_target_velocity, jnp.float32),
+        )
+
+    def _reward(
+        self, data_before: mjx.Data, data: mjx.Data, ctrl: jax.Array, params: CheetahVelParams
+    ) -> tuple[jax.Array, jax.Array, dict[str, jax.Array]]:
+        x_velocity = (data.qpos[0] - data_before.qpos[0]) / self.dt
+        forward_reward = -jnp.abs(x_velocity - params.target_velocity)
+        ctrl_cost = self.ctrl_cost_weight * jnp.sum(jnp.square(ctrl))
+        info = {
+            "x_position": data.qpos[0],
+            "x_velocity": x_velocity,
+            "reward_forward": forward_reward,
+            "reward_ctrl": -ctrl_cost,
+        }
+        return forward_reward - ctrl_cost, jnp.zeros((), jnp.bool_), info
+
+
 # --------------------------------------------------------------------------------------------
 # Pendula
 # --------------------------------------------------------------------------------------------
@@ -643,7 +698,9 @@ MJX_ENVS: dict[str, type[MjxEnv]] = {
 
 __all__ = [
     "MJX_ENVS",
+    "CheetahVelParams",
     "HalfCheetah",
+    "HalfCheetahVel",
     "Hopper",
     "InvertedDoublePendulum",
     "InvertedPendulumSwingup",
