@@ -6,6 +6,8 @@ with the operators kept as *protected* sympy functions (``PMul``, ``PDiv``, ``PL
 
 - ``to_python`` / ``to_c`` emit it verbatim (after common-subexpression elimination), with the
   exact protected semantics of :mod:`espl_jax.operators`, so deployed code reproduces the network;
+- ``to_jax`` turns it back into a jittable, differentiable JAX function built from the operators
+  of :mod:`espl_jax.operators` themselves (deployment benchmarks, closed-loop linearisation);
 - ``readable`` replaces the protected functions by the plain ones (``a*b``, ``a/b``, ``log``,
   ``exp``) and simplifies with sympy: this is the formula printed for people (``to_text``,
   ``to_latex``) and measured by ``complexity``. It equals the policy wherever no protection is
@@ -17,9 +19,13 @@ Constant subtrees (paths whose inputs are all pruned) fold to numbers as the exp
 from __future__ import annotations
 
 import math
+import operator
+import re
 from collections.abc import Callable, Sequence
-from functools import cache
+from functools import cache, reduce
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import sympy as sp
 
@@ -295,6 +301,87 @@ def _printed(expr: sp.Expr, printer: Callable[[sp.Expr], str], digits: int) -> s
     if length > READABLE_MAX_LENGTH:
         return f"<not printed: length {length} > {READABLE_MAX_LENGTH}; the network is not pruned>"
     return printer(round_floats(readable(expr), digits))
+
+
+# --------------------------------------------------------------------------------------------
+# JAX: the protected expression as a jittable, differentiable function.
+
+# The protected functions evaluate through the very operators the network trains with, so the
+# function below has the network's semantics (and its NaN-free gradients) by construction.
+_JAX_CALLS: dict = {
+    PMul: lambda a, b: ops.mul(a, b)[0],
+    PDiv: lambda a, b: ops.div(a, b)[0],
+    PLog: lambda x: ops.log(x)[0],
+    PExp: lambda x: ops.exp(x)[0],
+    PCond: lambda c, a, b: ops.cond(c, a, b)[0],
+    # plain functions: sin/cos of the network, exp/log of readable (unprotected) formulas
+    sp.sin: jnp.sin,
+    sp.cos: jnp.cos,
+    sp.exp: jnp.exp,
+    sp.log: jnp.log,
+}
+
+_OBS_SYMBOL = re.compile(r"x(\d+)")
+
+
+def _observation_index(symbol: sp.Symbol) -> int:
+    match = _OBS_SYMBOL.fullmatch(symbol.name)
+    if match is None:
+        raise ValueError(f"{symbol} is not an observation symbol x0, x1, ...")
+    return int(match.group(1))
+
+
+def to_jax(exprs: Sequence[sp.Expr]) -> Callable[[jax.Array], jax.Array]:
+    """A jittable, differentiable JAX function computing the formulas' pre-tanh values.
+
+    The protected functions (``PMul``, ``PDiv``, ``PLog``, ``PExp``, ``PCond``) evaluate through
+    :mod:`espl_jax.operators`, so the result is the symbolic network's deterministic mean (§3.1,
+    App. A) up to float rounding; shared subexpressions are evaluated once per call.
+
+    Args:
+        exprs: ``action_dim`` expressions in the symbols x0, x1, ... (as returned by
+            ``network_expressions``; readable formulas work too, without protection).
+
+    Returns:
+        ``pre_tanh(obs)``: obs float (..., obs_dim) -> float (..., action_dim), in obs's float
+        dtype; any leading batch axes are carried through (``jax.vmap`` works as well).
+    """
+    exprs = list(exprs)
+    columns = {s: _observation_index(s) for e in exprs for s in e.free_symbols}
+
+    def pre_tanh(obs: jax.Array) -> jax.Array:
+        obs = jnp.asarray(obs)
+        if not jnp.issubdtype(obs.dtype, jnp.floating):
+            obs = obs.astype(jnp.float32)
+        memo: dict[sp.Expr, jax.Array | float] = {}
+
+        def value(e: sp.Expr) -> jax.Array | float:
+            if e in memo:
+                return memo[e]
+            if e.is_Symbol:
+                v = obs[..., columns[e]]
+            elif e.is_Number or e.is_NumberSymbol:
+                v = float(e)  # a weak-typed Python float: takes obs's dtype
+            elif e.is_Add:
+                v = reduce(operator.add, map(value, e.args))
+            elif e.is_Mul:
+                v = reduce(operator.mul, map(value, e.args))
+            elif e.is_Pow:
+                exponent = e.exp
+                # an integer power stays a chain of multiplications (lax.integer_pow)
+                v = value(e.base) ** (int(exponent) if exponent.is_Integer else float(exponent))
+            elif e.func in _JAX_CALLS:
+                v = _JAX_CALLS[e.func](*map(value, e.args))
+            else:
+                raise ValueError(f"cannot evaluate {e.func} in JAX (in {e})")
+            memo[e] = v
+            return v
+
+        batch = obs.shape[:-1]
+        outputs = [jnp.broadcast_to(jnp.asarray(value(e), obs.dtype), batch) for e in exprs]
+        return jnp.stack(outputs, axis=-1)
+
+    return pre_tanh
 
 
 # --------------------------------------------------------------------------------------------

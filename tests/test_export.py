@@ -185,3 +185,54 @@ def test_unpruned_network_exports_in_protected_form():
     assert ex.to_text([expr]).startswith("a0 = <not printed: length ")
     assert ex.to_latex([expr]).startswith("a_{0} = <not printed: length ")
     assert ex.to_python([expr], OBS_DIM, np.array([-1.0]), np.array([1.0]))
+
+
+# --------------------------------------------------------------------------------------------
+# to_jax: the exported formula back in JAX
+
+
+def test_to_jax_is_the_network_on_random_pruned_networks():
+    rng = np.random.default_rng(5)
+    states = rng.normal(size=(500, OBS_DIM)) * 10.0 ** rng.uniform(-2, 1, size=(500, 1))
+    for seed in range(3):
+        net, params, probs = _random_network(seed)
+        exprs = ex.network_expressions(net, params, probs)
+        assert sum(ex.complexity(e) for e in exprs) > 20  # pruned, but not to nothing
+        policy = jax.jit(ex.to_jax(exprs))
+        # float64 isolates the semantics: same operators, only summation order differs
+        with jax.enable_x64(True):
+            ours64 = np.asarray(policy(jnp.asarray(states, jnp.float64)))
+        pre64, _ = _network_actions(net, params, probs, states, jnp.float64)
+        np.testing.assert_allclose(ours64, pre64, rtol=1e-9, atol=1e-9)
+        # float32, as the network trains: equal up to float32 round-off
+        ours32 = np.asarray(policy(jnp.asarray(states, jnp.float32)))
+        pre32, _ = _network_actions(net, params, probs, states)
+        assert ours32.dtype == np.float32 and ours32.shape == (len(states), 2)
+        np.testing.assert_allclose(ours32, pre32, rtol=2e-4, atol=2e-4)
+
+
+def test_to_jax_vmaps_and_has_finite_gradients_through_every_protection():
+    net, params, probs = _random_network(11)
+    exprs = ex.network_expressions(net, params, probs)
+    pre_tanh = ex.to_jax(exprs)
+    rng = np.random.default_rng(2)
+    # scales from 1e-4 (div/log guards active) to 1e3 (mul clamps and exp bounds active)
+    states = rng.normal(size=(300, OBS_DIM)) * 10.0 ** rng.uniform(-4, 3, size=(300, 1))
+    states = jnp.asarray(np.vstack([states, np.zeros((1, OBS_DIM))]), jnp.float32)
+    batched = jax.jit(pre_tanh)(states)
+    # vmap or batch axes: the same values (XLA may fuse float32 sums in another order)
+    np.testing.assert_allclose(jax.jit(jax.vmap(pre_tanh))(states), batched, rtol=1e-5, atol=1e-6)
+    grads = jax.jit(jax.vmap(jax.grad(lambda s: jnp.sum(jnp.tanh(pre_tanh(s))))))(states)
+    assert grads.shape == states.shape and np.all(np.isfinite(grads))
+    assert np.any(np.abs(grads) > 0)
+
+
+def test_to_jax_known_answer_and_constant_formulas():
+    x = ex.observation_symbols(3)
+    exprs = [17.17 * x[2] + 1.2 * x[0], sp.Float(0.5), ex.PDiv(x[1], x[0]) + x[1] ** 2]
+    f = ex.to_jax(exprs)
+    obs = jnp.array([[0.005, 2.0, 0.1], [0.5, 2.0, 0.1]])
+    np.testing.assert_allclose(
+        f(obs), [[1.717 + 0.006, 0.5, 0.0 + 4.0], [1.717 + 0.6, 0.5, 4.0 + 4.0]], rtol=1e-6
+    )
+    np.testing.assert_allclose(jax.grad(lambda s: f(s)[2])(obs[1]), [-8.0, 2.0 + 4.0, 0.0])
