@@ -5,7 +5,8 @@ with the operators kept as *protected* sympy functions (``PMul``, ``PDiv``, ``PL
 ``PCond``). That protected expression is the single source of truth:
 
 - ``to_python`` / ``to_c`` emit it verbatim (after common-subexpression elimination), with the
-  exact protected semantics of :mod:`espl_jax.operators`, so deployed code reproduces the network;
+  exact protected semantics of :mod:`espl_jax.operators`, so deployed code reproduces the network
+  (one observation with ``act``, a batch of robots with ``act_batch``);
 - ``to_jax`` turns it back into a jittable, differentiable JAX function built from the operators
   of :mod:`espl_jax.operators` themselves (deployment benchmarks, closed-loop linearisation);
 - ``readable`` replaces the protected functions by the plain ones (``a*b``, ``a/b``, ``log``,
@@ -389,6 +390,9 @@ def to_jax(exprs: Sequence[sp.Expr]) -> Callable[[jax.Array], jax.Array]:
 
 _PY_CALLS = {PMul: "_mul", PDiv: "_div", PLog: "_log", PExp: "_exp", PCond: "_cond"}
 _PY_CALLS.update({sp.sin: "math.sin", sp.cos: "math.cos", sp.exp: "math.exp", sp.log: "math.log"})
+# act_batch: numpy ufuncs over a column of N robots (np.where selects, so no Python branch)
+_NP_CALLS = {PMul: "_vmul", PDiv: "_vdiv", PLog: "_vlog", PExp: "_vexp", PCond: "_vcond"}
+_NP_CALLS.update({sp.sin: "np.sin", sp.cos: "np.cos", sp.exp: "np.exp", sp.log: "np.log"})
 _C_CALLS = {PMul: "p_mul", PDiv: "p_div", PLog: "p_log", PExp: "p_exp", PCond: "p_cond"}
 _C_CALLS.update({sp.sin: "sin", sp.cos: "cos", sp.exp: "exp", sp.log: "log"})
 
@@ -423,6 +427,7 @@ _PY_TEMPLATE = '''"""Symbolic policy exported by espl-jax. Needs only Python's m
 
 act(obs) evaluates these formulas with the protected operators used in training, squashes with tanh
 and scales to the action bounds [{low}, {high}].
+act_batch(obs) does the same for a batch of observations [N, {obs_dim}], vectorised with numpy.
 """
 
 import math
@@ -466,6 +471,51 @@ def act(obs):
     """Action in the environment's own units for one observation of shape ({obs_dim},)."""
     u = np.tanh(np.asarray(pre_tanh(obs), dtype=np.float64))
     return ACTION_LOW + (u + 1.0) * 0.5 * (ACTION_HIGH - ACTION_LOW)
+
+
+# Batched versions of the protected operators: the same values as above, elementwise. The masked
+# branch is computed on safe inputs (denominator 1, clipped exponent), so numpy never warns.
+
+
+def _vmul(a, b):
+    return np.clip(a, -100.0, 100.0) * np.clip(b, -100.0, 100.0)
+
+
+def _vdiv(a, b):
+    ok = b >= 0.01
+    return np.where(ok, a / np.where(ok, b, 1.0), 0.0)
+
+
+def _vlog(x):
+    return np.log(np.maximum(x, 0.001))
+
+
+def _vexp(x):
+    return np.exp(np.clip(x, -10.0, 4.0))
+
+
+def _vcond(c, a, b):
+    e = np.exp(-np.abs(c))
+    g = np.where(c >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
+    return g * a + (1.0 - g) * b
+
+
+def pre_tanh_batch(obs):
+    """pre_tanh for a batch: obs [N, {obs_dim}] -> [N, {action_dim}], no Python loop over N."""
+    obs = np.asarray(obs, dtype=np.float64)
+    if obs.ndim != 2 or obs.shape[1] != OBS_DIM:
+        raise ValueError(f"obs must have shape [N, {{OBS_DIM}}], got {{obs.shape}}")
+    n = obs.shape[0]
+    {vunpack}
+{vbody}
+    columns = [{results_batch}]
+    return np.stack([np.broadcast_to(c, (n,)) for c in columns], axis=1)
+
+
+def act_batch(obs):
+    """act for a batch: obs [N, {obs_dim}] -> actions [N, {action_dim}] in the env's own units."""
+    u = np.tanh(pre_tanh_batch(obs))
+    return ACTION_LOW + (u + 1.0) * 0.5 * (ACTION_HIGH - ACTION_LOW)
 '''
 
 
@@ -475,20 +525,32 @@ def to_python(
     action_low: Sequence[float],
     action_high: Sequence[float],
 ) -> str:
-    """Source of a standalone ``policy.py`` whose ``act(obs)`` reproduces the network exactly."""
+    """Source of a standalone ``policy.py`` whose ``act(obs)`` reproduces the network exactly.
+
+    The module also defines ``act_batch(obs)`` (and ``pre_tanh_batch``): obs [N, obs_dim] ->
+    [N, action_dim], the same semantics vectorised over N robots with numpy.
+    """
     replacements, reduced = _cse(exprs)
     py = {"calls": _PY_CALLS, "number": "{!r}", "power": "{}**{:g}"}
     names = ", ".join(f"x{i}" for i in range(obs_dim))
     unpack = f"{names}{',' if obs_dim == 1 else ''} = (float(v) for v in obs)"
     body = "\n".join(f"    {s} = {_code(e, **py)}" for s, e in replacements)
+    vec = {**py, "calls": _NP_CALLS}
+    # Contiguous columns: each x_i is then a plain 1-D array, which numpy's ufuncs stream fastest.
+    vunpack = f"{names}{',' if obs_dim == 1 else ''} = np.ascontiguousarray(obs.T)"
+    vbody = "\n".join(f"    {s} = {_code(e, **vec)}" for s, e in replacements)
     return _PY_TEMPLATE.format(
         formula=to_text(exprs),
         low=[float(v) for v in action_low],
         high=[float(v) for v in action_high],
         obs_dim=obs_dim,
+        action_dim=len(exprs),
         unpack=unpack,
         body=body,
         results=", ".join(_code(e, **py) for e in reduced),
+        vunpack=vunpack,
+        vbody=vbody,
+        results_batch=", ".join(_code(e, **vec) for e in reduced),
     )
 
 
@@ -523,6 +585,12 @@ void act(const double *obs, double *action) {{
     for (int i = 0; i < ACTION_DIM; ++i)
         action[i] = ACTION_LOW[i] + (tanh(u[i]) + 1.0) * 0.5 * (ACTION_HIGH[i] - ACTION_LOW[i]);
 }}
+
+/* act for n robots: obs [n][OBS_DIM] in, actions [n][ACTION_DIM] out, both row-major. */
+void act_batch(const double *obs, double *actions, int n) {{
+    for (long i = 0; i < n; ++i)
+        act(obs + i * OBS_DIM, actions + i * ACTION_DIM);
+}}
 """
 
 
@@ -532,7 +600,11 @@ def to_c(
     action_low: Sequence[float],
     action_high: Sequence[float],
 ) -> str:
-    """C99 source of ``void act(const double *obs, double *action)``, same semantics as Python."""
+    """C99 source of ``void act(const double *obs, double *action)``, same semantics as Python.
+
+    Also ``void act_batch(const double *obs, double *actions, int n)``: ``act`` over n row-major
+    observations [n][obs_dim] into [n][action_dim].
+    """
     replacements, reduced = _cse(exprs)
     c = {"calls": _C_CALLS, "number": "{:.17g}", "power": "pow({}, {:g})"}
     unpack = "\n".join(f"    const double x{i} = obs[{i}];" for i in range(obs_dim))

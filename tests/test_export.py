@@ -2,8 +2,10 @@
 
 import ctypes
 import importlib.util
+import re
 import shutil
 import subprocess
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -13,7 +15,7 @@ import sympy as sp
 
 from espl_jax import expression as ex
 from espl_jax import selector
-from espl_jax.symbolic import LAYOUTS, SymbolicNetwork
+from espl_jax.symbolic import LAYOUTS, Layout, SymbolicNetwork
 
 OBS_DIM = 4
 
@@ -111,8 +113,8 @@ BRANCHES = {
 }
 
 
-@pytest.mark.parametrize("branch", sorted(BRANCHES))
-def test_policy_py_matches_network_through_every_protection_branch(branch, tmp_path):
+def _branch_network(branch):
+    """A single-path network through one protection branch, and states on both sides of it."""
     layer, row, op_index, sources, protected = BRANCHES[branch]
     net = SymbolicNetwork(LAYOUTS["arranged"], OBS_DIM, 1)
     params = _zero_params(net)
@@ -127,7 +129,12 @@ def test_policy_py_matches_network_through_every_protection_branch(branch, tmp_p
     states = rng.uniform(-scale, scale, size=(1000, OBS_DIM))
     hit = protected(states)
     assert 100 < hit.sum() < 900  # both sides of the branch are well represented
+    return net, params, probs, states
 
+
+@pytest.mark.parametrize("branch", sorted(BRANCHES))
+def test_policy_py_matches_network_through_every_protection_branch(branch, tmp_path):
+    net, params, probs, states = _branch_network(branch)
     exprs = ex.network_expressions(net, params, probs)
     policy = _load_policy(ex.to_python(exprs, OBS_DIM, [-1.0], [1.0]), tmp_path / "policy.py")
     for dtype in (jnp.float32, jnp.float64):
@@ -236,3 +243,73 @@ def test_to_jax_known_answer_and_constant_formulas():
         f(obs), [[1.717 + 0.006, 0.5, 0.0 + 4.0], [1.717 + 0.6, 0.5, 4.0 + 4.0]], rtol=1e-6
     )
     np.testing.assert_allclose(jax.grad(lambda s: f(s)[2])(obs[1]), [-8.0, 2.0 + 4.0, 0.0])
+
+
+# --------------------------------------------------------------------------------------------
+# act_batch: N robots per call, in policy.py (numpy) and in C
+
+
+def _batch_cases():
+    """(name, exprs, states): every protection branch, a random pruned network, and a network of
+    every operator (cond included) on states from 1e-4 to 1e3, zero included."""
+    cases = []
+    for branch in sorted(BRANCHES):
+        net, params, probs, states = _branch_network(branch)
+        cases.append((branch, ex.network_expressions(net, params, probs), states))
+    rng = np.random.default_rng(4)
+    wide = rng.normal(size=(600, OBS_DIM)) * 10.0 ** rng.uniform(-4, 3, size=(600, 1))
+    wide = np.vstack([wide, np.zeros((1, OBS_DIM))])
+    net, params, probs = _random_network(3)
+    cases.append(("random", ex.network_expressions(net, params, probs), wide))
+    every_op = Layout((("mul", "div", "log", "exp", "sin", "cos", "cond"),) * 2)
+    net = SymbolicNetwork(every_op, OBS_DIM, 2)
+    params = jax.tree.map(np.asarray, net.init(jax.random.key(8)))
+    params["w"] = [w * 3.0 for w in params["w"]]  # push inputs into the protected regions
+    probs = [rng.uniform(0, 1, w.shape) for w in params["w"]]
+    cases.append(("every_operator", ex.network_expressions(net, params, probs), wide))
+    return cases
+
+
+def test_act_batch_is_act_on_every_row_without_numpy_warnings(tmp_path):
+    low, high = np.array([-1.0, -3.0]), np.array([1.0, 0.5])
+    for name, exprs, states in _batch_cases():
+        dim = len(exprs)
+        source = ex.to_python(exprs, OBS_DIM, low[:dim], high[:dim])
+        policy = _load_policy(source, tmp_path / f"{name}.py")
+        batch_code = source.split("def pre_tanh_batch")[1]
+        assert not re.search(r"^\s*(for|while) ", batch_code, re.M)  # vectorised: no loop over N
+        if name == "every_operator":
+            assert all(f"_v{op}(" in batch_code for op in ("mul", "div", "log", "exp", "cond"))
+        # numpy's defaults plus raising: underflow (exp(-|c|) -> 0 in cond) stays ignored, as in
+        # math.exp, but any divide, overflow or invalid operation fails the test
+        with warnings.catch_warnings(), np.errstate(divide="raise", over="raise", invalid="raise"):
+            warnings.simplefilter("error")
+            pre = policy.pre_tanh_batch(states)
+            actions = policy.act_batch(states)
+        assert pre.shape == actions.shape == (len(states), dim), name
+        np.testing.assert_allclose(pre, [policy.pre_tanh(s) for s in states], rtol=1e-12, atol=0)
+        np.testing.assert_allclose(actions, [policy.act(s) for s in states], rtol=1e-12, atol=1e-15)
+    with pytest.raises(ValueError, match="shape"):
+        policy.act_batch(states[:, :2])
+
+
+@pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler on this machine")
+def test_c_act_batch_matches_python_act_batch(tmp_path):
+    low, high = np.array([-1.0, -3.0]), np.array([1.0, 0.5])
+    for name, exprs, states in _batch_cases():
+        dim = len(exprs)
+        source = tmp_path / f"{name}.c"
+        source.write_text(ex.to_c(exprs, OBS_DIM, low[:dim], high[:dim]))
+        lib_path = tmp_path / f"{name}.so"
+        compile_cmd = ["cc", "-O2", "-shared", "-fPIC", "-o", str(lib_path), str(source), "-lm"]
+        subprocess.run(compile_cmd, check=True)
+        act_batch = ctypes.CDLL(str(lib_path)).act_batch
+        double_p = ctypes.POINTER(ctypes.c_double)
+        act_batch.argtypes = [double_p, double_p, ctypes.c_int]
+        act_batch.restype = None
+        obs = np.ascontiguousarray(states, np.float64)
+        out = np.full((len(obs), dim), np.nan)
+        act_batch(obs.ctypes.data_as(double_p), out.ctypes.data_as(double_p), len(obs))
+        python_source = ex.to_python(exprs, OBS_DIM, low[:dim], high[:dim])
+        policy = _load_policy(python_source, tmp_path / f"{name}.py")
+        np.testing.assert_allclose(out, policy.act_batch(obs), rtol=1e-12, atol=1e-15, err_msg=name)
