@@ -2,10 +2,13 @@
 
 import ctypes
 import importlib.util
+import json
 import re
 import shutil
 import subprocess
+import sys
 import warnings
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -313,3 +316,51 @@ def test_c_act_batch_matches_python_act_batch(tmp_path):
         python_source = ex.to_python(exprs, OBS_DIM, low[:dim], high[:dim])
         policy = _load_policy(python_source, tmp_path / f"{name}.py")
         np.testing.assert_allclose(out, policy.act_batch(obs), rtol=1e-12, atol=1e-15, err_msg=name)
+
+
+# --------------------------------------------------------------------------------------------
+# benchmarks/deploy.py: a smoke run (slow: benchmarks are not part of the default suite)
+
+
+def _deploy_module():
+    path = Path(__file__).resolve().parent.parent / "benchmarks" / "deploy.py"
+    spec = importlib.util.spec_from_file_location("deploy_benchmark", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up while the class is built
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.slow
+def test_deploy_benchmark_smoke_and_paper_formulas(tmp_path):
+    from test_box2d import _paper_bipedalwalker, _paper_lunarlander
+
+    deploy = _deploy_module()
+    # Table 3 as transcribed for deploy.py equals the tested numpy versions of test_box2d.py
+    # wherever no protection is active (those use |b| >= 0.01 and log|x|, ours b >= 0.01, log x)
+    rng = np.random.default_rng(0)
+    for name, reference, dim in (
+        ("lunarlander", _paper_lunarlander, 8),
+        ("bipedalwalker", _paper_bipedalwalker, 24),
+    ):
+        plain = ex.to_jax([ex.readable(e) for e in deploy.paper_formulas(name)])
+        obs = rng.uniform(-1, 1, size=(500, dim))
+        obs[:, 1] = np.abs(obs[:, 1]) + 0.01  # lunarlander's log(0.5 y) argument
+        with jax.enable_x64(True):
+            ours = np.tanh(np.asarray(plain(obs)))
+        expected = np.array([reference(o) for o in obs])
+        assert np.mean(np.abs(ours - expected) < 1e-9) > 0.99, name
+
+    out = tmp_path / "deploy.json"
+    argv = ["--robots", "16", "--envs", "cartpole", "hopper_params", "--repeats", "2"]
+    assert deploy.main([*argv, "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())
+    impls = {(r["env"], r["policy"].split()[0], r["impl"]) for r in rows}
+    assert {("cartpole", "ESPL", i) for i in ("numpy", "jax")} <= impls
+    assert ("hopper_params", "PEARL", "jax") in impls
+    assert not any(r["env"] == "hopper_params" and r["policy"].startswith("ESPL") for r in rows)
+    espl = next(r for r in rows if r["policy"].startswith("ESPL") and r["impl"] == "numpy")
+    assert espl["flops_per_robot_step"] == 6  # 17.17*x2 + 1.2*x3: 2 products, 1 sum; + 3
+    for r in rows:
+        assert r["robots"] == 16 and r["ms_per_step"] > 0 and r["time_over_bound"] > 0
+        assert r["xla_flops_per_robot_step"] > 0
