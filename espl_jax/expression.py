@@ -5,7 +5,10 @@ with the operators kept as *protected* sympy functions (``PMul``, ``PDiv``, ``PL
 ``PCond``). That protected expression is the single source of truth:
 
 - ``to_python`` / ``to_c`` emit it verbatim (after common-subexpression elimination), with the
-  exact protected semantics of :mod:`espl_jax.operators`, so deployed code reproduces the network;
+  exact protected semantics of :mod:`espl_jax.operators`, so deployed code reproduces the network
+  (one observation with ``act``, a batch of robots with ``act_batch``);
+- ``to_jax`` turns it back into a jittable, differentiable JAX function built from the operators
+  of :mod:`espl_jax.operators` themselves (deployment benchmarks, closed-loop linearisation);
 - ``readable`` replaces the protected functions by the plain ones (``a*b``, ``a/b``, ``log``,
   ``exp``) and simplifies with sympy: this is the formula printed for people (``to_text``,
   ``to_latex``) and measured by ``complexity``. It equals the policy wherever no protection is
@@ -17,9 +20,13 @@ Constant subtrees (paths whose inputs are all pruned) fold to numbers as the exp
 from __future__ import annotations
 
 import math
+import operator
+import re
 from collections.abc import Callable, Sequence
-from functools import cache
+from functools import cache, reduce
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import sympy as sp
 
@@ -298,10 +305,94 @@ def _printed(expr: sp.Expr, printer: Callable[[sp.Expr], str], digits: int) -> s
 
 
 # --------------------------------------------------------------------------------------------
+# JAX: the protected expression as a jittable, differentiable function.
+
+# The protected functions evaluate through the very operators the network trains with, so the
+# function below has the network's semantics (and its NaN-free gradients) by construction.
+_JAX_CALLS: dict = {
+    PMul: lambda a, b: ops.mul(a, b)[0],
+    PDiv: lambda a, b: ops.div(a, b)[0],
+    PLog: lambda x: ops.log(x)[0],
+    PExp: lambda x: ops.exp(x)[0],
+    PCond: lambda c, a, b: ops.cond(c, a, b)[0],
+    # plain functions: sin/cos of the network, exp/log of readable (unprotected) formulas
+    sp.sin: jnp.sin,
+    sp.cos: jnp.cos,
+    sp.exp: jnp.exp,
+    sp.log: jnp.log,
+}
+
+_OBS_SYMBOL = re.compile(r"x(\d+)")
+
+
+def _observation_index(symbol: sp.Symbol) -> int:
+    match = _OBS_SYMBOL.fullmatch(symbol.name)
+    if match is None:
+        raise ValueError(f"{symbol} is not an observation symbol x0, x1, ...")
+    return int(match.group(1))
+
+
+def to_jax(exprs: Sequence[sp.Expr]) -> Callable[[jax.Array], jax.Array]:
+    """A jittable, differentiable JAX function computing the formulas' pre-tanh values.
+
+    The protected functions (``PMul``, ``PDiv``, ``PLog``, ``PExp``, ``PCond``) evaluate through
+    :mod:`espl_jax.operators`, so the result is the symbolic network's deterministic mean (§3.1,
+    App. A) up to float rounding; shared subexpressions are evaluated once per call.
+
+    Args:
+        exprs: ``action_dim`` expressions in the symbols x0, x1, ... (as returned by
+            ``network_expressions``; readable formulas work too, without protection).
+
+    Returns:
+        ``pre_tanh(obs)``: obs float (..., obs_dim) -> float (..., action_dim), in obs's float
+        dtype; any leading batch axes are carried through (``jax.vmap`` works as well).
+    """
+    exprs = list(exprs)
+    columns = {s: _observation_index(s) for e in exprs for s in e.free_symbols}
+
+    def pre_tanh(obs: jax.Array) -> jax.Array:
+        obs = jnp.asarray(obs)
+        if not jnp.issubdtype(obs.dtype, jnp.floating):
+            obs = obs.astype(jnp.float32)
+        memo: dict[sp.Expr, jax.Array | float] = {}
+
+        def value(e: sp.Expr) -> jax.Array | float:
+            if e in memo:
+                return memo[e]
+            if e.is_Symbol:
+                v = obs[..., columns[e]]
+            elif e.is_Number or e.is_NumberSymbol:
+                v = float(e)  # a weak-typed Python float: takes obs's dtype
+            elif e.is_Add:
+                v = reduce(operator.add, map(value, e.args))
+            elif e.is_Mul:
+                v = reduce(operator.mul, map(value, e.args))
+            elif e.is_Pow:
+                exponent = e.exp
+                # an integer power stays a chain of multiplications (lax.integer_pow)
+                v = value(e.base) ** (int(exponent) if exponent.is_Integer else float(exponent))
+            elif e.func in _JAX_CALLS:
+                v = _JAX_CALLS[e.func](*map(value, e.args))
+            else:
+                raise ValueError(f"cannot evaluate {e.func} in JAX (in {e})")
+            memo[e] = v
+            return v
+
+        batch = obs.shape[:-1]
+        outputs = [jnp.broadcast_to(jnp.asarray(value(e), obs.dtype), batch) for e in exprs]
+        return jnp.stack(outputs, axis=-1)
+
+    return pre_tanh
+
+
+# --------------------------------------------------------------------------------------------
 # Code generation: the protected expression, after common-subexpression elimination.
 
 _PY_CALLS = {PMul: "_mul", PDiv: "_div", PLog: "_log", PExp: "_exp", PCond: "_cond"}
 _PY_CALLS.update({sp.sin: "math.sin", sp.cos: "math.cos", sp.exp: "math.exp", sp.log: "math.log"})
+# act_batch: numpy ufuncs over a column of N robots (np.where selects, so no Python branch)
+_NP_CALLS = {PMul: "_vmul", PDiv: "_vdiv", PLog: "_vlog", PExp: "_vexp", PCond: "_vcond"}
+_NP_CALLS.update({sp.sin: "np.sin", sp.cos: "np.cos", sp.exp: "np.exp", sp.log: "np.log"})
 _C_CALLS = {PMul: "p_mul", PDiv: "p_div", PLog: "p_log", PExp: "p_exp", PCond: "p_cond"}
 _C_CALLS.update({sp.sin: "sin", sp.cos: "cos", sp.exp: "exp", sp.log: "log"})
 
@@ -336,6 +427,7 @@ _PY_TEMPLATE = '''"""Symbolic policy exported by espl-jax. Needs only Python's m
 
 act(obs) evaluates these formulas with the protected operators used in training, squashes with tanh
 and scales to the action bounds [{low}, {high}].
+act_batch(obs) does the same for a batch of observations [N, {obs_dim}], vectorised with numpy.
 """
 
 import math
@@ -379,6 +471,51 @@ def act(obs):
     """Action in the environment's own units for one observation of shape ({obs_dim},)."""
     u = np.tanh(np.asarray(pre_tanh(obs), dtype=np.float64))
     return ACTION_LOW + (u + 1.0) * 0.5 * (ACTION_HIGH - ACTION_LOW)
+
+
+# Batched versions of the protected operators: the same values as above, elementwise. The masked
+# branch is computed on safe inputs (denominator 1, clipped exponent), so numpy never warns.
+
+
+def _vmul(a, b):
+    return np.clip(a, -100.0, 100.0) * np.clip(b, -100.0, 100.0)
+
+
+def _vdiv(a, b):
+    ok = b >= 0.01
+    return np.where(ok, a / np.where(ok, b, 1.0), 0.0)
+
+
+def _vlog(x):
+    return np.log(np.maximum(x, 0.001))
+
+
+def _vexp(x):
+    return np.exp(np.clip(x, -10.0, 4.0))
+
+
+def _vcond(c, a, b):
+    e = np.exp(-np.abs(c))
+    g = np.where(c >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
+    return g * a + (1.0 - g) * b
+
+
+def pre_tanh_batch(obs):
+    """pre_tanh for a batch: obs [N, {obs_dim}] -> [N, {action_dim}], no Python loop over N."""
+    obs = np.asarray(obs, dtype=np.float64)
+    if obs.ndim != 2 or obs.shape[1] != OBS_DIM:
+        raise ValueError(f"obs must have shape [N, {{OBS_DIM}}], got {{obs.shape}}")
+    n = obs.shape[0]
+    {vunpack}
+{vbody}
+    columns = [{results_batch}]
+    return np.stack([np.broadcast_to(c, (n,)) for c in columns], axis=1)
+
+
+def act_batch(obs):
+    """act for a batch: obs [N, {obs_dim}] -> actions [N, {action_dim}] in the env's own units."""
+    u = np.tanh(pre_tanh_batch(obs))
+    return ACTION_LOW + (u + 1.0) * 0.5 * (ACTION_HIGH - ACTION_LOW)
 '''
 
 
@@ -388,20 +525,32 @@ def to_python(
     action_low: Sequence[float],
     action_high: Sequence[float],
 ) -> str:
-    """Source of a standalone ``policy.py`` whose ``act(obs)`` reproduces the network exactly."""
+    """Source of a standalone ``policy.py`` whose ``act(obs)`` reproduces the network exactly.
+
+    The module also defines ``act_batch(obs)`` (and ``pre_tanh_batch``): obs [N, obs_dim] ->
+    [N, action_dim], the same semantics vectorised over N robots with numpy.
+    """
     replacements, reduced = _cse(exprs)
     py = {"calls": _PY_CALLS, "number": "{!r}", "power": "{}**{:g}"}
     names = ", ".join(f"x{i}" for i in range(obs_dim))
     unpack = f"{names}{',' if obs_dim == 1 else ''} = (float(v) for v in obs)"
     body = "\n".join(f"    {s} = {_code(e, **py)}" for s, e in replacements)
+    vec = {**py, "calls": _NP_CALLS}
+    # Contiguous columns: each x_i is then a plain 1-D array, which numpy's ufuncs stream fastest.
+    vunpack = f"{names}{',' if obs_dim == 1 else ''} = np.ascontiguousarray(obs.T)"
+    vbody = "\n".join(f"    {s} = {_code(e, **vec)}" for s, e in replacements)
     return _PY_TEMPLATE.format(
         formula=to_text(exprs),
         low=[float(v) for v in action_low],
         high=[float(v) for v in action_high],
         obs_dim=obs_dim,
+        action_dim=len(exprs),
         unpack=unpack,
         body=body,
         results=", ".join(_code(e, **py) for e in reduced),
+        vunpack=vunpack,
+        vbody=vbody,
+        results_batch=", ".join(_code(e, **vec) for e in reduced),
     )
 
 
@@ -436,6 +585,12 @@ void act(const double *obs, double *action) {{
     for (int i = 0; i < ACTION_DIM; ++i)
         action[i] = ACTION_LOW[i] + (tanh(u[i]) + 1.0) * 0.5 * (ACTION_HIGH[i] - ACTION_LOW[i]);
 }}
+
+/* act for n robots: obs [n][OBS_DIM] in, actions [n][ACTION_DIM] out, both row-major. */
+void act_batch(const double *obs, double *actions, int n) {{
+    for (long i = 0; i < n; ++i)
+        act(obs + i * OBS_DIM, actions + i * ACTION_DIM);
+}}
 """
 
 
@@ -445,7 +600,11 @@ def to_c(
     action_low: Sequence[float],
     action_high: Sequence[float],
 ) -> str:
-    """C99 source of ``void act(const double *obs, double *action)``, same semantics as Python."""
+    """C99 source of ``void act(const double *obs, double *action)``, same semantics as Python.
+
+    Also ``void act_batch(const double *obs, double *actions, int n)``: ``act`` over n row-major
+    observations [n][obs_dim] into [n][action_dim].
+    """
     replacements, reduced = _cse(exprs)
     c = {"calls": _C_CALLS, "number": "{:.17g}", "power": "pow({}, {:g})"}
     unpack = "\n".join(f"    const double x{i} = obs[{i}];" for i in range(obs_dim))
