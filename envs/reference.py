@@ -137,8 +137,15 @@ def _cartpole(**kwargs) -> gymnasium.Env:
     return TimeLimit(ContinuousCartPole(**kwargs), max_episode_steps=1000)
 
 
+def _cartpole_fl(**kwargs) -> gymnasium.Env:
+    """cartpole_fl_ood's task: the same CartPole with the task's force_mag and (half-)length,
+    horizon 200 (paper App. B.2)."""
+    return TimeLimit(ContinuousCartPole(**kwargs), max_episode_steps=200)
+
+
 _REFERENCES: dict[str, Callable[..., gymnasium.Env]] = {
     "cartpole": _cartpole,
+    "cartpole_fl_ood": _cartpole_fl,
     "mountaincar": lambda **kwargs: gymnasium.make("MountainCarContinuous-v0", **kwargs),
     "pendulum": lambda **kwargs: gymnasium.make("Pendulum-v1", **kwargs),
     "lunarlander": lambda **kwargs: box2d.lunarlander().make_env(**kwargs),

@@ -118,12 +118,16 @@ class TaskFamily:
             ``HostEnv`` for gymnasium's Box2D tasks).
         n_train: number of meta-training tasks.
         n_test: number of meta-test tasks.
+        use_next_obs_in_context: whether the context encoder sees s' (PEARL's
+            ``use_next_obs_in_context``: on where the dynamics differ across tasks, off where
+            only the reward does, as in the authors' cheetah config).
     """
 
     name: str
     env: Environment | HostEnv
     n_train: int
     n_test: int
+    use_next_obs_in_context: bool = True
 
     def split_keys(self, seed: int) -> tuple[PRNGKey, PRNGKey]:
         """``(key_train, key_test)``: the two halves of ``jax.random.split(PRNGKey(seed))``."""
@@ -404,7 +408,13 @@ def _mjx_family(name: str, env_name: str) -> Callable[[], TaskFamily]:
 def _cheetah_vel_ood() -> TaskFamily:
     from envs.mjx import HalfCheetahVel
 
-    return CheetahVelOOD("cheetah_vel_ood", HalfCheetahVel(horizon=META_HORIZON), 50, 15)
+    return CheetahVelOOD(
+        "cheetah_vel_ood",
+        HalfCheetahVel(horizon=META_HORIZON),
+        50,
+        15,
+        use_next_obs_in_context=False,
+    )
 
 
 def _lunarlander_params() -> TaskFamily:

@@ -79,7 +79,7 @@ def exported_expressions(run_dir: str | Path, seed: int | None = None) -> list[s
         policy (pre-tanh, symbols x0 … x{obs_dim−1}).
     """
     trainer, state, _ = run.load_run(run_dir)
-    if trainer.sac.actor.symbolic is None:
+    if trainer.actor.symbolic is None:
         raise UserError(f"{run_dir} trained an MLP actor: there is no formula to analyse")
     seed = best_seed(run_dir) if seed is None else seed
     if not 0 <= seed < trainer.config.seeds:

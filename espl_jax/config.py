@@ -349,8 +349,11 @@ def resolve(
 def _check_known_env(name: str) -> None:
     import envs
 
-    if name not in envs.KNOWN_ENVS:
-        raise UserError(f"unknown environment {name!r}; known: {', '.join(envs.KNOWN_ENVS)}")
+    if name not in envs.KNOWN_ENVS and not envs.is_family(name):
+        raise UserError(
+            f"unknown environment {name!r}; known: {', '.join(envs.KNOWN_ENVS)}; "
+            f"meta-RL task families: {', '.join(envs.KNOWN_FAMILIES)}"
+        )
 
 
 def dump(config: Config) -> str:

@@ -35,13 +35,18 @@ def has_reference(env_name: str) -> bool:
 
 
 def rollout_returns(
-    act: Callable[[np.ndarray], np.ndarray], env_name: str, episodes: int, seed: int = 0
+    act: Callable[[np.ndarray], np.ndarray],
+    env_name: str,
+    episodes: int,
+    seed: int = 0,
+    **env_kwargs,
 ) -> np.ndarray:
     """Returns of ``episodes`` episodes of ``act`` in the reference env, seeds seed … seed+N−1.
 
-    ``act`` maps an observation to an action in the environment's own units.
+    ``act`` maps an observation to an action in the environment's own units; ``env_kwargs``
+    set the reference env's physics (a meta-RL task, e.g. cartpole_fl_ood's force_mag).
     """
-    env = reference_env(env_name)
+    env = reference_env(env_name, **env_kwargs)
     returns = np.zeros(episodes)
     for i in range(episodes):
         obs, _ = env.reset(seed=seed + i)

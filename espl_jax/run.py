@@ -138,7 +138,9 @@ def train(
     started = time.perf_counter()
     warnings: list[str] = []
     run_chunk, close = chunk_runner(trainer)
-    progress_eval = evaluator(trainer, config.progress_eval_episodes)
+    progress_eval = progress_evaluator(trainer)
+    if start == 0 and trainer.meta:
+        state = trainer.compiled_warmup()(state)  # PEARL's initial collection on every task
     bar = tqdm(
         total=config.iterations,
         initial=start,
@@ -158,7 +160,7 @@ def train(
                 _append_metrics(run_dir / METRICS_FILE, metrics, None)
                 raise TrainingDiverged(diverged + "; " + _kept(run_dir, mngr.latest_step()))
             eval_keys = jax.vmap(jax.random.fold_in, (0, None))(new_state.key, 1)
-            eval_returns = np.asarray(progress_eval(new_state.actor, eval_keys))
+            eval_returns = np.asarray(progress_eval(new_state, eval_keys))
             _append_metrics(run_dir / METRICS_FILE, metrics, eval_returns)
             state = new_state
             iteration += length
@@ -222,6 +224,17 @@ def chunk_runner(trainer: Trainer) -> tuple[Any, contextlib.AbstractContextManag
     return run_chunk, contextlib.nullcontext()
 
 
+def progress_evaluator(trainer: Trainer):
+    """(state [S], keys [S, 2]) -> returns [S, n] for the learning curve after each chunk:
+    single task, ``progress_eval_episodes`` episodes of the exported formula; meta-RL, PEARL's
+    protocol on every test task (the last trajectory's return, averaged over runs)."""
+    if trainer.meta:
+        adapt = trainer.compiled_adapt("test")
+        return lambda state, keys: np.asarray(adapt(state, keys).final_return).mean(axis=-1)
+    evaluate = evaluator(trainer, trainer.config.progress_eval_episodes)
+    return lambda state, keys: evaluate(state.actor, keys)
+
+
 def evaluator(trainer: Trainer, episodes: int):
     """(actor params [S, ...], keys [S, 2]) -> returns [S, episodes] of the eval-mask policy.
 
@@ -245,6 +258,10 @@ def finish(
     evaluation (policy.py in gymnasium), so a failure there — or a kill — loses nothing: it
     becomes a warning in the output and in eval.json.
     """
+    if trainer.meta:
+        from espl_jax import meta
+
+        return meta.finish(trainer, state, run_dir, train_seconds, list(warnings or []))
     cfg, env = trainer.config, trainer.env
     warnings = list(warnings or [])
     evaluate = evaluator(trainer, cfg.eval_episodes)

@@ -25,6 +25,7 @@ from itertools import groupby
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from espl_jax.operators import get_operator
 
@@ -193,3 +194,39 @@ class SymbolicNetwork:
             layer_out = jnp.concatenate(outputs)
             x = jnp.concatenate([x, layer_out]) if self.layout.dense else layer_out
         return ws[-1] @ x + bs[-1], penalty
+
+
+def live_paths(network: SymbolicNetwork, weights: list[np.ndarray]) -> np.ndarray:
+    """Paths that reach the output, per action dimension: the paper's "selected paths" (App. F).
+
+    A path is a non-zero (masked) weight whose row feeds an operator whose output is used,
+    directly or through later operators, by the final linear layer; weights into operators
+    whose output nothing uses do not count.
+
+    Args:
+        network: a densely linked network (the "plain" layout counts every non-zero weight).
+        weights: the masked weights, one (A, rows, cols) array per layer as in ``params["w"]``.
+
+    Returns:
+        int array (A,).
+    """
+    weights = [np.asarray(w) != 0 for w in weights]
+    if not network.layout.dense:
+        return np.sum([w.reshape(w.shape[0], -1).sum(1) for w in weights], axis=0)
+    counts = []
+    widths = [len(ops) for ops in network.layout.layers]
+    offsets = network.obs_dim + np.concatenate([[0], np.cumsum(widths)[:-1]])
+    for a in range(network.action_dim):
+        live = weights[-1][a, 0].copy()  # inputs of the output layer that it uses
+        count = int(live.sum())
+        for layer in reversed(range(len(widths))):
+            rows = 0
+            for k, name in enumerate(network.layout.layers[layer]):
+                arity = get_operator(name).arity
+                if live[offsets[layer] + k]:
+                    used = weights[layer][a, rows : rows + arity]  # (arity, inputs)
+                    count += int(used.sum())
+                    live[: used.shape[1]] |= used.any(axis=0)
+                rows += arity
+        counts.append(count)
+    return np.asarray(counts)

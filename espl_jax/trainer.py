@@ -126,7 +126,7 @@ class Trainer:
     def encoder(self) -> pearl.Encoder | None:
         if not self.meta:
             return None
-        use_next = getattr(self.family, "use_next_obs_in_context", True)
+        use_next = self.family.use_next_obs_in_context
         return pearl.Encoder(self.config.encoder_hidden, self.config.latent_dim, use_next)
 
     @cached_property
@@ -265,7 +265,7 @@ class Trainer:
         env, cfg = self.env, self.config
         n = tasks.shape[0]
         k_reset, k_context, k_collect = jax.random.split(key, 3)
-        task_params = jax.tree.map(lambda x: x[tasks], self.tasks[0])
+        task_params = jax.tree.map(lambda x: jnp.asarray(x)[tasks], self.tasks[0])
         latent = self.latent_dim
         if posterior:
             context = replay.sample(
