@@ -79,6 +79,18 @@ class Config:
     schedule_iterations: int = 80  # t_s
     target_temperature: float = 0.2  # τ_t
 
+    # After the schedule (ESPL; not in the paper, see the README's robustness section):
+    # finetune: from iteration t_s on, p is set to the exported mask (p > 0.5, |w| > 1e-3, as
+    # 0/1) and frozen, so collection, the critic's target and the actor loss all use exactly the
+    # formula that is exported, and the constants (and F, the critics) are fine-tuned on it
+    # with the step finetune_learning_rate (EQL-style symbolic regression does the same).
+    finetune: bool = False
+    finetune_learning_rate: float = 3e-4
+    # keep_best_formula: export the formula that scored best on the selection episodes after
+    # each chunk from t_s on (the hall of fame's best), not the last one; the reported return is
+    # measured afresh on other episodes.
+    keep_best_formula: bool = False
+
     # SAC's entropy temperature: tuned towards −|A| from ``alpha`` (ESPL), or fixed at ``alpha``
     # (the authors' CSP code and PEARL fix it; with reward scale 5, as there).
     auto_alpha: bool = True
@@ -172,6 +184,7 @@ _POSITIVE_FLOAT = (
     "grad_clip",
     "reward_scale",
     "alpha",
+    "finetune_learning_rate",
 )
 _NON_NEGATIVE_FLOAT = (
     "penalty_scale",

@@ -72,9 +72,10 @@ class HostCollector:
         self.obs: np.ndarray | None = None  # [S, obs_dim] current observation of each env
         self.episode_return: np.ndarray | None = None  # [S] return of the episode in progress
 
-        def begin(key, actor_params):
+        def begin(key, actor_params, iteration):
+            actor_params = trainer.freeze_mask(actor_params, iteration)
             key, mask, k_collect, k_update = trainer.start_iteration(key, actor_params)
-            return key, mask, jax.random.split(k_collect, self.steps), k_update
+            return key, actor_params, mask, jax.random.split(k_collect, self.steps), k_update
 
         def learn(state, transitions, done, finished_returns, obs, episode_return, eps, key):
             state, c_metrics = trainer.record_collection(
@@ -155,8 +156,8 @@ class HostCollector:
 
     def iteration(self, state: TrainState) -> tuple[TrainState, Metrics]:
         """One iteration for all seeds (Algorithm 1, lines 3–18); metrics shaped [S]."""
-        key, mask, step_keys, k_update = self._begin(state.key, state.actor)
-        state = state.replace(key=key)
+        key, actor, mask, step_keys, k_update = self._begin(state.key, state.actor, state.iteration)
+        state = state.replace(key=key, actor=actor)
         transitions, done, finished_returns, eps = self.collect(state, mask, step_keys)
         return self._learn(
             state,

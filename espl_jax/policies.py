@@ -155,11 +155,19 @@ class Actor:
 
 def _probs_and_rest_optimizer(config: Config) -> optax.GradientTransformation:
     """ESPL: the selector's probabilities keep the paper's step while w, b and θ_F may take a
-    larger one (config.py); one global-norm clip over all of them."""
+    larger one (config.py); one global-norm clip over all of them. With ``finetune`` the step
+    of w, b and θ_F becomes ``finetune_learning_rate`` once the schedule is over."""
+    rest_lr: float | optax.Schedule = config.actor_learning_rate
+    if config.finetune:
+        boundary = config.schedule_iterations * config.updates_per_iteration
+        rest_lr = optax.piecewise_constant_schedule(
+            config.actor_learning_rate,
+            {boundary: config.finetune_learning_rate / config.actor_learning_rate},
+        )
     per_group = optax.multi_transform(
         {
             "probs": optax.adam(config.probs_learning_rate),
-            "rest": optax.adam(config.actor_learning_rate),
+            "rest": optax.adam(rest_lr),
         },
         lambda params: {
             k: jax.tree.map(lambda _, k=k: "probs" if k == "probs" else "rest", v)
@@ -228,6 +236,13 @@ class StoredSymbolic(Actor):
 
     def project(self, params):
         return {**params, "probs": selector.project_probs(params["probs"])}
+
+    def freeze(self, params: Params) -> Params:
+        """p := the exported mask as 0/1 (``finetune``): every mask is then that mask."""
+        if not self.uses_selector:
+            return params
+        probs = selector.deterministic_mask(params["probs"], params["mean"]["w"])
+        return {**params, "probs": probs}
 
     def l0_ratio(self, policy):
         if not self.uses_selector:

@@ -28,12 +28,14 @@ from pathlib import Path
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
 from espl_jax import checkpoint, evaluation, faults, host, replay
 from espl_jax import config as config_lib
 from espl_jax import expression as ex
+from espl_jax import halloffame as hof
 from espl_jax.config import Config, UserError
 from espl_jax.sac import TrainState
 from espl_jax.trainer import Trainer
@@ -121,6 +123,7 @@ def train(
                 f"least {start} to resume it"
             )
         _truncate_metrics(run_dir / METRICS_FILE, start)
+        _truncate_metrics(run_dir / hof.FORMULAS_FILE, start)
         # Written after the checkpoint proved readable; a kill in between is harmless (the next
         # resume re-reads the checkpoint and fits its buffer again).
         if config_lib.load(run_dir / "config.yaml") != config:
@@ -131,6 +134,8 @@ def train(
         run_dir.mkdir(parents=True, exist_ok=True)
         _write_atomic(run_dir / "config.yaml", config_lib.dump(config))
         (run_dir / METRICS_FILE).write_text("")
+        if keeps_hall_of_fame(trainer):
+            (run_dir / hof.FORMULAS_FILE).write_text("")
         state = trainer.init_seeds()
         start = 0
 
@@ -164,11 +169,18 @@ def train(
             _append_metrics(run_dir / METRICS_FILE, metrics, eval_returns)
             state = new_state
             iteration += length
+            if keeps_hall_of_fame(trainer):
+                state = record_hall_of_fame(trainer, state, eval_returns, iteration, run_dir)
             checkpoint.save(mngr, iteration, state)
             warn_on_failure(
                 warnings, "learning-curve plot", plot_learning_curve,
                 run_dir / METRICS_FILE, run_dir / CURVE_FILE, config.env,
             )  # fmt: skip
+            if keeps_hall_of_fame(trainer):
+                warn_on_failure(
+                    warnings, "hall-of-fame plot", hof.plot,
+                    run_dir / hof.FORMULAS_FILE, run_dir / hof.PLOT_FILE, config.env,
+                )  # fmt: skip
             bar.update(length)
             bar.set_postfix(
                 eval_return=f"{eval_returns.mean():.1f}",
@@ -179,6 +191,26 @@ def train(
     if iteration < config.iterations:
         return {}
     return finish(trainer, state, run_dir, train_seconds, warnings)
+
+
+def keeps_hall_of_fame(trainer: Trainer) -> bool:
+    """Single-task symbolic runs keep every chunk's formula (espl_jax.halloffame)."""
+    return not trainer.meta and trainer.actor.symbolic is not None
+
+
+def record_hall_of_fame(
+    trainer: Trainer, state: TrainState, eval_returns: np.ndarray, iteration: int, run_dir: Path
+) -> TrainState:
+    """formulas.jsonl rows for this chunk, and the anchor updated from t_s on."""
+    returns = eval_returns.mean(axis=1)
+    eligible = iteration >= trainer.config.schedule_iterations
+    state = jax.jit(hof.update_anchor, static_argnums=2)(state, jnp.asarray(returns), eligible)
+    env_steps = np.asarray(state.env_steps)
+    rows = hof.seed_rows(trainer, state.actor, returns, iteration=iteration, eligible=eligible)
+    for r in rows:
+        r["env_steps"] = int(env_steps[r["seed"]])
+    hof.append(run_dir / hof.FORMULAS_FILE, rows)
+    return state
 
 
 def restore(run_dir: str | Path, trainer: Trainer) -> tuple[int, TrainState]:
@@ -265,21 +297,24 @@ def finish(
     cfg, env = trainer.config, trainer.env
     warnings = list(warnings or [])
     evaluate = evaluator(trainer, cfg.eval_episodes)
+    actors, source = exported_actors(trainer, state)
     # Select on one set of episodes, report on a fresh one, so the reported figure is unbiased.
     # A single seed needs no selection (for MJX envs it would double the final evaluation).
     report_keys = jax.vmap(jax.random.fold_in, (0, None))(state.key, 3)
-    report = np.asarray(evaluate(state.actor, report_keys))
+    report = np.asarray(evaluate(actors, report_keys))
     best = 0
     if cfg.seeds > 1:
         select_keys = jax.vmap(jax.random.fold_in, (0, None))(state.key, 2)
-        selection = np.asarray(evaluate(state.actor, select_keys))
+        selection = np.asarray(evaluate(actors, select_keys))
         best = int(np.argmax(selection.mean(axis=1)))
 
     per_seed = []
     formulas = {}
     for s in range(cfg.seeds):
-        actor = jax.tree.map(lambda x, s=s: np.asarray(x[s]), state.actor)
-        entry = {"seed": s, "jax_eval": evaluation.summary(report[s])}
+        actor = jax.tree.map(lambda x, s=s: np.asarray(x[s]), actors)
+        entry = {"seed": s, "jax_eval": evaluation.summary(report[s]), "exported": source[s]}
+        if source[s] == "best":
+            entry["exported_iteration"] = int(state.anchor_iteration[s])
         if trainer.actor.symbolic is not None:
             exprs = export_expressions(trainer, actor)
             formulas[s] = exprs
@@ -321,6 +356,21 @@ def finish(
         warn_on_failure(warnings, "reference evaluation of policy.py", reference)
         _write_eval(run_dir, result, warnings)
     return result
+
+
+def exported_actors(trainer: Trainer, state: TrainState) -> tuple[Any, list[str]]:
+    """Each seed's actor whose formula the run exports, and which one it is ("final" or
+    "best": the hall of fame's anchor, with ``keep_best_formula`` once one was eligible)."""
+    seeds = trainer.config.seeds
+    if not trainer.config.keep_best_formula or state.anchor is None:
+        return state.actor, ["final"] * seeds
+    has_anchor = np.isfinite(np.asarray(state.anchor_return))
+
+    def pick(anchor, final):
+        return np.where(has_anchor.reshape(-1, *([1] * (anchor.ndim - 1))), anchor, final)
+
+    actors = jax.tree.map(pick, jax.device_get(state.anchor), jax.device_get(state.actor))
+    return actors, ["best" if a else "final" for a in has_anchor]
 
 
 def _write_eval(run_dir: Path, result: dict[str, Any], warnings: list[str]) -> None:
@@ -435,7 +485,9 @@ def _scalar(x: Any) -> float | int:
 def _truncate_metrics(path: Path, iteration: int) -> None:
     """Drop rows written after the checkpoint a resumed run restarts from (and a partial last
     line left by a kill mid-write)."""
-    rows = [r for r in read_metrics(path) if r["iteration"] <= iteration] if path.exists() else []
+    if not path.exists():
+        return
+    rows = [r for r in read_metrics(path) if r["iteration"] <= iteration]
     _write_atomic(path, "".join(json.dumps(r) + "\n" for r in rows))
 
 

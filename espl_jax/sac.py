@@ -62,6 +62,11 @@ class TrainState:
     iteration: jax.Array  # int32, completed training iterations
     env_steps: jax.Array  # int32
     episodes: jax.Array  # int32, finished training episodes
+    # ESPL's hall-of-fame anchor (espl_jax.halloffame): the actor whose exported formula scored
+    # best on the selection episodes from the end of the schedule on. None for meta-RL.
+    anchor: dict[str, Any] | None = None
+    anchor_return: jax.Array | None = None
+    anchor_iteration: jax.Array | None = None
 
 
 def task_keys(key: jax.Array, n: int) -> jax.Array:
@@ -267,9 +272,15 @@ class SAC:
     # One gradient step ----------------------------------------------------------------------
 
     def update(
-        self, state: TrainState, key: jax.Array, tau: jax.Array, l_min: jax.Array
+        self,
+        state: TrainState,
+        key: jax.Array,
+        tau: jax.Array,
+        l_min: jax.Array,
+        frozen: jax.Array | None = None,
     ) -> tuple[TrainState, Metrics]:
-        """One SAC step: critic (and encoder), actor, α, then Polyak."""
+        """One SAC step: critic (and encoder), actor, α, then Polyak. ``frozen`` (ESPL's
+        fine-tune phase) keeps the path probabilities where they are."""
         k_batch, k_critic, k_actor = jax.random.split(key, 3)
         batch, context = self.sample_batch(state, k_batch)
 
@@ -293,6 +304,11 @@ class SAC:
         tx = self.actor.optimizer()
         a_updates, actor_opt = tx.update(a_grads, state.actor_opt, state.actor)
         actor = self.actor.project(optax.apply_updates(state.actor, a_updates))
+        if frozen is not None:
+            probs = jax.tree.map(
+                lambda old, new: jnp.where(frozen, old, new), state.actor["probs"], actor["probs"]
+            )
+            actor = {**actor, "probs": probs}
 
         log_alpha, alpha_opt = state.log_alpha, state.alpha_opt
         if self.config.auto_alpha:

@@ -182,8 +182,17 @@ class Trainer:
             capacity = max(cfg.initial_steps, cfg.prior_steps)
             encoder_buffer = replay.init(tasks, capacity, env.obs_dim, env.action_dim)
         zero_i = jnp.zeros((), jnp.int32)
+        learner = self.sac.init_learner(k_learner)
+        anchor = {}
+        if not self.meta and self.actor.symbolic is not None:
+            anchor = dict(
+                anchor=learner["actor"],
+                anchor_return=jnp.asarray(-jnp.inf),
+                anchor_iteration=jnp.asarray(-1, jnp.int32),
+            )
         return TrainState(
-            **self.sac.init_learner(k_learner),
+            **learner,
+            **anchor,
             buffer=replay.init(tasks, self.buffer_capacity, env.obs_dim, env.action_dim),
             encoder_buffer=encoder_buffer,
             rollout=state,
@@ -193,10 +202,15 @@ class Trainer:
             episodes=zero_i,
         )
 
+    def seed_keys(self) -> jax.Array:
+        """[S, 2]: seed i of a ``--seeds S --seed K`` run is ``PRNGKey(K + i)``, the key of a
+        one-seed ``--seed K+i`` run, so a sweep's seeds are the single runs' seeds."""
+        seeds = self.config.seed + np.arange(self.config.seeds)
+        return jnp.stack([jax.random.PRNGKey(int(s)) for s in seeds])
+
     def init_seeds(self) -> TrainState:
         """States for ``config.seeds`` seeds stacked on a leading axis."""
-        keys = jax.random.split(jax.random.PRNGKey(self.config.seed), self.config.seeds)
-        return jax.jit(jax.vmap(self.init))(keys)
+        return jax.jit(jax.vmap(self.init))(self.seed_keys())
 
     # Collection -----------------------------------------------------------------------------
 
@@ -353,9 +367,10 @@ class Trainer:
         """The rest of an iteration after collection: ``updates_per_iteration`` SAC steps in one
         scan (Algorithm 1, lines 8–17; Algorithm 2, lines 13–30), counted."""
         tau, l_min = self.schedules(state.iteration)
+        frozen = self.frozen(state.iteration)
 
         def update(s, k):
-            return self.sac.update(s, k, tau, l_min)
+            return self.sac.update(s, k, tau, l_min, frozen)
 
         keys = jax.random.split(key, self.config.updates_per_iteration)
         state, u_metrics = jax.lax.scan(update, state, keys)
@@ -375,8 +390,27 @@ class Trainer:
         }
         return state, metrics
 
+    @property
+    def finetunes(self) -> bool:
+        """ESPL's fine-tune phase applies (``finetune`` and a path selector)."""
+        return self.config.finetune and not self.meta and self.actor.uses_selector
+
+    def frozen(self, iteration: jax.Array) -> jax.Array | None:
+        """Whether the mask is frozen at this iteration (None when there is no fine-tuning)."""
+        if not self.finetunes:
+            return None
+        return iteration >= self.config.schedule_iterations
+
+    def freeze_mask(self, actor_params: dict, iteration: jax.Array) -> dict:
+        """From t_s on, p := the exported mask (0/1); idempotent, so applied every iteration."""
+        if not self.finetunes:
+            return actor_params
+        frozen = self.actor.freeze(actor_params)
+        return rollout.where(self.frozen(iteration), frozen, actor_params)
+
     def iteration(self, state: TrainState) -> tuple[TrainState, Metrics]:
         """One iteration of Algorithm 1 or 2 in JAX (collection, then ``learn``)."""
+        state = state.replace(actor=self.freeze_mask(state.actor, state.iteration))
         if self.meta:
             key, k_collect, k_update = jax.random.split(state.key, 3)
             state, c_metrics = self.collect_meta(state.replace(key=key), k_collect)

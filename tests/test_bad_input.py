@@ -135,17 +135,11 @@ def config_case(id_: str, text: str, *fragments: str) -> Case:
 
 
 # Out-of-range and non-finite values for every numeric key of the config.
-_RANGE = {
-    "seed": (-1, "seed must be in [0, 2**31)"),
+_SPECIAL = {
     "reference_eval_episodes": (-1, "reference_eval_episodes must be >= 0"),
     "exploration_correlation": (1.0, "exploration_correlation must be in [0, 1)"),
-    "gamma": (1.5, "gamma must be in (0, 1]"),
-    "polyak": (0.0, "polyak must be in (0, 1]"),
-    "target_l0_ratio": (-0.1, "target_l0_ratio must be in (0, 1]"),
-    "target_temperature": (2.0, "target_temperature must be in (0, 1]"),
-    "penalty_scale": (-1.0, "penalty_scale must be >= 0"),
-    "select_scale": (-0.5, "select_scale must be >= 0"),
-    "bias_l1_scale": (-1e-3, "bias_l1_scale must be >= 0"),
+    "seed": (-1, "seed must be in [0, 2**31)"),
+    "task_seed": (2**31, "task_seed must be in [0, 2**31)"),
 }
 NUMERIC_KEYS = [
     f.name for f in fields(config_lib.Config) if config_lib._field_type(f) in (int, float)
@@ -153,11 +147,19 @@ NUMERIC_KEYS = [
 
 
 def _out_of_range(key: str) -> tuple[object, str]:
-    if key in _RANGE:
-        return _RANGE[key]
+    if key in _SPECIAL:
+        return _SPECIAL[key]
     if key in config_lib._POSITIVE_INT:
         return 0, f"{key} must be positive"
-    return 0.0, f"{key} must be > 0"  # the positive floats: learning rates, scales, clip
+    if key in config_lib._NON_NEGATIVE_INT:
+        return -1, f"{key} must be >= 0"
+    if key in config_lib._UNIT_INTERVAL:
+        return 1.5, f"{key} must be in (0, 1]"
+    if key in config_lib._POSITIVE_FLOAT:
+        return 0.0, f"{key} must be > 0"
+    if key in config_lib._NON_NEGATIVE_FLOAT:
+        return -0.5, f"{key} must be >= 0"
+    raise AssertionError(f"the bad-input table has no out-of-range value for {key}")
 
 
 def _non_finite(key: str) -> str:
