@@ -80,8 +80,18 @@ class Actor:
         raise NotImplementedError
 
     def at(self, params: Params, z: jax.Array) -> TaskPolicy:
-        """The task policy for latent z (L,). Single-task kinds ignore z."""
-        del z
+        """The task policy for latent z (L,): ``policy(params, generate(params, z))``."""
+        return self.policy(params, self.generate(params, z))
+
+    def generate(self, params: Params, z: jax.Array) -> Any:
+        """The part of the task policy that depends on z (CSP: w, b, p; PEARL: z itself; Hyper:
+        the generated weights). Scans over env steps carry this, not the whole policy, so the
+        learned params are not copied at every step."""
+        return z
+
+    def policy(self, params: Params, part: Any) -> TaskPolicy:
+        """The task policy from the learned params and a ``generate``-d part."""
+        del part  # single-task kinds: the params are the policy
         return params
 
     def mean_and_log_std(
@@ -316,7 +326,7 @@ class GeneratedSymbolic(Actor):
             start += size
         return out
 
-    def at(self, params, z):
+    def generate(self, params, z):
         phi_w, phi_b, psi = self._generators()
         logits = self._split(psi.apply(params["psi"], z), rows_only=False)
         return {
@@ -326,9 +336,11 @@ class GeneratedSymbolic(Actor):
             },
             "probs": [jax.nn.sigmoid(s) for s in logits],
             "logits": logits,
-            "std": params["std"],
             "z": z,
         }
+
+    def policy(self, params, part):
+        return {**part, "std": params["std"]}
 
     def mean_and_log_std(self, policy, mask, obs):
         mean, penalty = self.symbolic.apply(policy["mean"], mask, obs)
@@ -372,8 +384,8 @@ class PearlActor(Actor):
     def init(self, key: jax.Array) -> Params:
         return {"net": self._net().init(key, jnp.zeros((self.obs_dim + self.latent_dim,)))}
 
-    def at(self, params, z):
-        return {"net": params["net"], "z": z}
+    def policy(self, params, part):
+        return {"net": params["net"], "z": part}
 
     def mean_and_log_std(self, policy, mask, obs):
         out = self._net().apply(policy["net"], jnp.concatenate([obs, policy["z"]]))
@@ -391,8 +403,11 @@ class HyperActor(Actor):
     def init(self, key: jax.Array) -> Params:
         return {"hyper": self._hyper().init(key, jnp.zeros((self.latent_dim,)))}
 
-    def at(self, params, z):
-        return {"weights": self._hyper().apply(params["hyper"], z)}
+    def generate(self, params, z):
+        return self._hyper().apply(params["hyper"], z)
+
+    def policy(self, params, part):
+        return {"weights": part}
 
     def mean_and_log_std(self, policy, mask, obs):
         mean, log_std = generated_policy(policy["weights"], obs)

@@ -30,7 +30,7 @@ from espl_jax import pearl
 from espl_jax.policies import Actor, TaskPolicy
 from espl_jax.replay import Transition
 
-Draw = Callable[[jax.Array], tuple[TaskPolicy, Any]]
+Draw = Callable[[jax.Array], tuple[Any, Any]]  # episode index -> (z-dependent part, mask)
 
 
 @struct.dataclass
@@ -80,7 +80,8 @@ def collect(
     rho: float,
     rollout: Rollout,
     task_params: Any,
-    policy: TaskPolicy,
+    actor_params: Any,
+    part: Any,
     mask: Any,
     key: jax.Array,
     steps: int,
@@ -90,9 +91,11 @@ def collect(
 
     Args:
         rollout: where the agent is (a fresh ``reset`` to start a phase from scratch).
-        policy, mask: the task policy and mask to act with (until ``draw`` replaces them).
-        draw: if given, ``draw(key) -> (policy, mask)`` is called at the first step and at every
-            episode start (a new z per trajectory); else the policy is fixed for all steps.
+        actor_params: the learned params.
+        part, mask: the z-dependent part of the task policy (``Actor.generate``) and the mask
+            to act with, until ``draw`` replaces them.
+        draw: if given, ``draw(i) -> (part, mask)`` gives the policy of the i-th episode of this
+            call, at its first step (a new z per trajectory); else the policy is fixed.
 
     Returns:
         (rollout, transitions [K], done [K], finished_returns [K]): done marks the steps that
@@ -100,10 +103,11 @@ def collect(
     """
 
     def step(carry, k):
-        r, policy, mask, fresh = carry
+        r, part, mask, fresh, episode = carry
         k_act, k_env, k_reset = jax.random.split(k, 3)
         if draw is not None:
-            policy, mask = where(fresh, draw(jax.random.fold_in(k_reset, 1)), (policy, mask))
+            part, mask = where(fresh, draw(episode), (part, mask))
+        policy = actor.policy(actor_params, part)
         action, eps = explore(actor, rho, policy, mask, r.obs, r.exploration_noise, k_act)
         next_obs, next_state, reward, terminated, truncated, _ = env.step(
             k_env, r.env_state, action, task_params
@@ -122,11 +126,11 @@ def collect(
             jnp.where(done, 0.0, ep_return),
             eps,
         )
-        return (r, policy, mask, done), out
+        return (r, part, mask, done, episode + done.astype(jnp.int32)), out
 
     keys = jax.random.split(key, steps)
-    init = (rollout, policy, mask, jnp.asarray(True))
-    (rollout, _, _, _), (transitions, done, finished) = jax.lax.scan(step, init, keys)
+    init = (rollout, part, mask, jnp.asarray(True), jnp.zeros((), jnp.int32))
+    (rollout, *_), (transitions, done, finished) = jax.lax.scan(step, init, keys)
     return rollout, transitions, done, finished
 
 
@@ -180,24 +184,25 @@ def adapt_and_evaluate(
     latent = encoder.latent_dim
 
     def task_policy(z):
-        policy = actor.at(actor_params, z)
-        return policy, actor.eval_mask(policy)
+        part = actor.generate(actor_params, z)
+        return part, actor.eval_mask(actor.policy(actor_params, part))
 
     k_z, k_reset, k_run = jax.random.split(key, 3)
     z = jax.random.normal(k_z, (latent,))
     obs, env_state = env.reset(k_reset, task_params)
-    policy, mask = task_policy(z)
+    part, mask = task_policy(z)
     zero = jnp.zeros(())
     init = dict(
         env_state=env_state, obs=obs, ep_return=zero, steps=jnp.zeros((), jnp.int32),
         trajectories=jnp.zeros((), jnp.int32), posterior=pearl.Posterior.empty(latent), z=z,
-        policy=policy, mask=mask, final=zero, first=zero, active=jnp.asarray(True),
+        part=part, mask=mask, final=zero, first=zero, active=jnp.asarray(True),
     )  # fmt: skip
 
     def step(c, k):
         k_env, k_reset, k_z = jax.random.split(k, 3)
         active = c["active"]
-        action = actor.deterministic(c["policy"], c["mask"], c["obs"])
+        policy = actor.policy(actor_params, c["part"])
+        action = actor.deterministic(policy, c["mask"], c["obs"])
         next_obs, next_state, reward, terminated, truncated, _ = env.step(
             k_env, c["env_state"], action, task_params
         )
@@ -215,7 +220,7 @@ def adapt_and_evaluate(
         use_posterior = trajectories >= exploration_trajectories
         noise = jax.random.normal(k_z, (latent,))
         new_z = jnp.where(use_posterior, post_mu + jnp.sqrt(post_var) * noise, noise)
-        new_policy, new_mask = task_policy(new_z)
+        new_part, new_mask = task_policy(new_z)
         reset_obs, reset_state = env.reset(k_reset, task_params)
         c = dict(
             env_state=where(again, reset_state, next_state),
@@ -225,7 +230,7 @@ def adapt_and_evaluate(
             trajectories=trajectories,
             posterior=posterior,
             z=jnp.where(again, new_z, c["z"]),
-            policy=where(again, new_policy, c["policy"]),
+            part=where(again, new_part, c["part"]),
             mask=where(again, new_mask, c["mask"]),
             final=jnp.where(ended, ep_return, c["final"]),
             first=jnp.where(ended & (trajectories == 1), ep_return, c["first"]),

@@ -214,10 +214,10 @@ class Trainer:
 
     # Collection -----------------------------------------------------------------------------
 
-    def _collect(self, r, task_params, policy, mask, key, steps, draw=None):
+    def _collect(self, r, task_params, actor_params, part, mask, key, steps, draw=None):
         return rollout.collect(
             self.env, self.actor, self.config.exploration_correlation,
-            r, task_params, policy, mask, key, steps, draw,
+            r, task_params, actor_params, part, mask, key, steps, draw,
         )  # fmt: skip
 
     def start_iteration(self, key: jax.Array, actor_params: dict):
@@ -252,10 +252,10 @@ class Trainer:
 
     def collect_single(self, state: TrainState, mask: Any, key: jax.Array):
         """ESPL: K steps on the one task with one fixed mask (Algorithm 1, lines 5–7)."""
-        policy = self.actor.at(state.actor, jnp.zeros((0,)))
+        no_z = jnp.zeros((0,))
         steps = self.config.steps_per_iteration
         r, transitions, done, finished = jax.vmap(
-            lambda r, p, k: self._collect(r, p, policy, mask, k, steps)
+            lambda r, p, k: self._collect(r, p, state.actor, no_z, mask, k, steps)
         )(state.rollout, self.tasks[0], task_keys(key, 1))
         one_task = jnp.zeros(1, jnp.int32)
         state = state.replace(buffer=replay.insert(state.buffer, one_task, transitions))
@@ -263,13 +263,24 @@ class Trainer:
             state, rollout_state=r, done=done, finished_returns=finished, steps=steps
         )
 
-    def _draw(self, params: dict, mu: jax.Array, var: jax.Array):
-        """draw(key) -> (task policy, mask) for z ~ N(mu, var) (CSP: with a Bernoulli mask)."""
+    # Trajectories a collection phase draws a z for; a phase with more episodes reuses them in
+    # turn (only very short episodes, early in training, get there: 32 × 12 steps ≥ 400).
+    DRAWS_PER_PHASE = 32
 
-        def draw(key):
-            k_z, k_mask = jax.random.split(key)
-            policy = self.actor.at(params, pearl.sample(k_z, mu, var))
-            return policy, self.actor.collect_mask(k_mask, policy)
+    def _draw(self, params: dict, mu: jax.Array, var: jax.Array, key: jax.Array):
+        """draw(i) -> (policy part, mask) of the i-th trajectory: z ~ N(mu, var), and CSP's
+        Bernoulli mask of σ(Ψ(z)). The draws are made up front, so the (hyper)networks that
+        generate a policy run once per trajectory, not at every step."""
+        k_z, k_mask = jax.random.split(key)
+        n = self.DRAWS_PER_PHASE
+        z = mu + jnp.sqrt(var) * jax.random.normal(k_z, (n, mu.shape[-1]))
+        parts = jax.vmap(self.actor.generate, (None, 0))(params, z)
+        masks = jax.vmap(lambda k, p: self.actor.collect_mask(k, self.actor.policy(params, p)))(
+            jax.random.split(k_mask, n), parts
+        )
+
+        def draw(i):
+            return jax.tree.map(lambda x: x[i % n], (parts, masks))
 
         return draw
 
@@ -291,10 +302,9 @@ class Trainer:
 
         def one(p, k_r, k_c, mu_t, var_t):
             r = rollout.reset(env, p, k_r, env.action_dim)
-            draw = self._draw(state.actor, mu_t, var_t)
-            # Replaced at the first step; it only fixes the structure of the scan's carry.
-            policy, mask = draw(jax.random.fold_in(k_c, 2))
-            return self._collect(r, p, policy, mask, k_c, steps, draw)
+            draw = self._draw(state.actor, mu_t, var_t, jax.random.fold_in(k_c, 1))
+            part, mask = draw(0)  # the first step draws it again; this fixes the carry's shape
+            return self._collect(r, p, state.actor, part, mask, k_c, steps, draw)
 
         r, transitions, done, finished = jax.vmap(one)(
             task_params, jax.random.split(k_reset, n), jax.random.split(k_collect, n), mu, var

@@ -463,7 +463,8 @@ def _collect(cfg, env, zero_actor=False):
     @jax.jit
     def run_collect(r, key):
         return rollout.collect(
-            env, actor, cfg.exploration_correlation, r, env.default_params, params, None, key,
+            env, actor, cfg.exploration_correlation, r, env.default_params, params,
+            jnp.zeros((0,)), None, key,
             cfg.steps_per_iteration,
         )  # fmt: skip
 
