@@ -149,6 +149,8 @@ _REFERENCES: dict[str, Callable[..., gymnasium.Env]] = {
     "mountaincar": lambda **kwargs: gymnasium.make("MountainCarContinuous-v0", **kwargs),
     "pendulum": lambda **kwargs: gymnasium.make("Pendulum-v1", **kwargs),
     "lunarlander": lambda **kwargs: box2d.lunarlander().make_env(**kwargs),
+    # lunarlander_params' tasks: the same env with the task's gravity (envs/tasks.py)
+    "lunarlander_params": lambda **kwargs: box2d.lunarlander().make_env(**kwargs),
     "bipedalwalker": lambda **kwargs: box2d.bipedalwalker().make_env(**kwargs),
     # MJX envs reproduce these gymnasium v5 classes (envs/mjx.py). The swing-up task has no
     # gymnasium counterpart (PyBullet's is not installable here), so it has no reference.

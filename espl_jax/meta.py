@@ -67,12 +67,11 @@ def finish(
     write_tasks(trainer, run_dir)
 
     keys = jax.vmap(jax.random.fold_in, (0, None))
-    test = jax.device_get(trainer.compiled_adapt("test")(state, keys(state.key, 3)))
+    test = jax.device_get(run_lib.adapter(trainer, test_params)(state, keys(state.key, 3)))
     # PEARL also evaluates on as many training tasks as there are test tasks.
     n = min(family.n_test, family.n_train)
     subset = jax.tree.map(lambda x: x[:n], train_params)
-    adapt_train = jax.jit(jax.vmap(lambda s, k: trainer.adapt(s, subset, k)))
-    train = jax.device_get(adapt_train(state, keys(state.key, 2)))
+    train = jax.device_get(run_lib.adapter(trainer, subset)(state, keys(state.key, 2)))
     test_returns = np.asarray(test.final_return)  # [S, tasks, runs]
     train_returns = np.asarray(train.final_return)
     best = int(np.argmax(train_returns.mean(axis=(1, 2)))) if cfg.seeds > 1 else 0
@@ -177,6 +176,9 @@ def _fresh_episodes(
     """Each adapted formula, fixed, on ``FRESH_EPISODES`` new episodes of its task (in JAX); for
     cartpole_fl_ood also its policy.py in the numpy reference CartPole with the task's physics."""
     env, actor = trainer.env, trainer.actor
+    if trainer.on_host:  # a gymnasium family: its policy.py files in gymnasium, per task
+        _fresh_policy_py(trainer, result, policy_files, warnings)
+        return
     params = _seed(state.actor, best)
     zs = jnp.asarray([entry["z"] for entry in result["test"]["per_task"]])
 
@@ -190,18 +192,33 @@ def _fresh_episodes(
     for entry, returns in zip(result["test"]["per_task"], fresh, strict=True):
         entry["fresh_return"] = float(returns.mean())
     result["test"]["fresh_mean"] = float(fresh.mean())
-    if trainer.config.env != "cartpole_fl_ood":
-        return
+    if evaluation.has_reference(trainer.config.env):
+        _fresh_policy_py(trainer, result, policy_files, warnings)
+
+
+def _fresh_policy_py(
+    trainer: Trainer, result: dict, policy_files: list[Path], warnings: list[str]
+) -> None:
+    """Each test task's policy.py on fresh episodes of the reference env with the task's params
+    (numpy CartPole for cartpole_fl_ood; gymnasium's LunarLander for lunarlander_params)."""
+    family = trainer.family
 
     def reference() -> None:
-        for entry, path in zip(result["test"]["per_task"], policy_files, strict=True):
+        returns_all = []
+        test_params = trainer.tasks[1]
+        for i, (entry, path) in enumerate(
+            zip(result["test"]["per_task"], policy_files, strict=True)
+        ):
+            kwargs = family.host_kwargs(test_params, i) if trainer.on_host else entry["params"]
             policy = evaluation.load_policy(path)
             returns = evaluation.rollout_returns(
-                policy.act, "cartpole_fl_ood", FRESH_EPISODES, 0, **entry["params"]
+                policy.act, trainer.config.env, FRESH_EPISODES, 0, **kwargs
             )
             entry["policy_py_return"] = float(returns.mean())
+            returns_all.append(returns.mean())
+        result["test"]["policy_py_mean"] = float(np.mean(returns_all))
 
-    run_lib.warn_on_failure(warnings, "policy.py in the reference CartPole", reference)
+    run_lib.warn_on_failure(warnings, "policy.py in the reference env", reference)
 
 
 def coefficient_figure(trainer: Trainer, state: TrainState, best: int, run_dir: Path) -> None:

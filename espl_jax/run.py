@@ -144,8 +144,8 @@ def train(
     warnings: list[str] = []
     run_chunk, close = chunk_runner(trainer)
     progress_eval = progress_evaluator(trainer)
-    if start == 0 and trainer.meta:
-        state = trainer.compiled_warmup()(state)  # PEARL's initial collection on every task
+    if start == 0 and trainer.meta:  # PEARL's initial collection on every training task
+        state = warmup(trainer, state)
     bar = tqdm(
         total=config.iterations,
         initial=start,
@@ -244,7 +244,12 @@ def chunk_runner(trainer: Trainer) -> tuple[Any, contextlib.AbstractContextManag
     host collector of :mod:`espl_jax.host`, whose gymnasium envs ``closer`` closes on exit.
     """
     if trainer.on_host:
-        collector = host.HostCollector(trainer)
+        if trainer.meta:
+            from espl_jax.host_meta import HostMetaCollector
+
+            collector = HostMetaCollector(trainer)
+        else:
+            collector = host.HostCollector(trainer)
         return collector.chunk, contextlib.closing(collector)
     compiled: dict[int, Any] = {}
 
@@ -261,10 +266,29 @@ def progress_evaluator(trainer: Trainer):
     single task, ``progress_eval_episodes`` episodes of the exported formula; meta-RL, PEARL's
     protocol on every test task (the last trajectory's return, averaged over runs)."""
     if trainer.meta:
-        adapt = trainer.compiled_adapt("test")
+        adapt = adapter(trainer, trainer.tasks[1])
         return lambda state, keys: np.asarray(adapt(state, keys).final_return).mean(axis=-1)
     evaluate = evaluator(trainer, trainer.config.progress_eval_episodes)
     return lambda state, keys: evaluate(state.actor, keys)
+
+
+def warmup(trainer: Trainer, state: TrainState) -> TrainState:
+    """Meta-RL: PEARL's initial collection (in JAX, or on the host for gymnasium families)."""
+    if trainer.on_host:
+        from espl_jax.host_meta import HostMetaCollector
+
+        return HostMetaCollector(trainer).warmup(state)
+    return trainer.compiled_warmup()(state)
+
+
+def adapter(trainer: Trainer, task_params: Any):
+    """Meta-RL: PEARL's protocol on ``task_params`` [N], (state [S], keys [S, 2]) -> Adapted
+    [S, N, runs]; in JAX, or on the host for gymnasium families."""
+    if trainer.on_host:
+        from espl_jax.host_meta import HostAdapter
+
+        return HostAdapter(trainer, task_params)
+    return jax.jit(jax.vmap(lambda s, k: trainer.adapt(s, task_params, k)))
 
 
 def evaluator(trainer: Trainer, episodes: int):

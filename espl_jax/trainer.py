@@ -267,10 +267,10 @@ class Trainer:
     # turn (only very short episodes, early in training, get there: 32 × 12 steps ≥ 400).
     DRAWS_PER_PHASE = 32
 
-    def _draw(self, params: dict, mu: jax.Array, var: jax.Array, key: jax.Array):
-        """draw(i) -> (policy part, mask) of the i-th trajectory: z ~ N(mu, var), and CSP's
-        Bernoulli mask of σ(Ψ(z)). The draws are made up front, so the (hyper)networks that
-        generate a policy run once per trajectory, not at every step."""
+    def draws(self, params: dict, mu: jax.Array, var: jax.Array, key: jax.Array):
+        """The policies of a phase's trajectories, drawn up front: ``DRAWS_PER_PHASE`` latents
+        z ~ N(mu, var), their generated parts and (CSP) Bernoulli masks of σ(Ψ(z)), so the
+        (hyper)networks that generate a policy run once per trajectory, not at every step."""
         k_z, k_mask = jax.random.split(key)
         n = self.DRAWS_PER_PHASE
         z = mu + jnp.sqrt(var) * jax.random.normal(k_z, (n, mu.shape[-1]))
@@ -278,27 +278,37 @@ class Trainer:
         masks = jax.vmap(lambda k, p: self.actor.collect_mask(k, self.actor.policy(params, p)))(
             jax.random.split(k_mask, n), parts
         )
+        return parts, masks
+
+    def _draw(self, params: dict, mu: jax.Array, var: jax.Array, key: jax.Array):
+        """draw(i) -> (policy part, mask) of the i-th trajectory of a phase (``draws``)."""
+        parts, masks = self.draws(params, mu, var, key)
+        n = self.DRAWS_PER_PHASE
 
         def draw(i):
             return jax.tree.map(lambda x: x[i % n], (parts, masks))
 
         return draw
 
+    def phase_latents(self, state: TrainState, tasks: jax.Array, key: jax.Array, posterior: bool):
+        """(mu, var) [R, L] the phase's z are drawn from: the prior N(0, I), or the posterior of a
+        context drawn from each task's (fresh) encoder buffer."""
+        n = tasks.shape[0]
+        if not posterior:
+            return jnp.zeros((n, self.latent_dim)), jnp.ones((n, self.latent_dim))
+        context = replay.sample(
+            state.encoder_buffer, tasks, jax.random.split(key, n), self.config.context_batch
+        )
+        return jax.vmap(self.encoder.posterior, (None, 0))(state.encoder, context)
+
     def _meta_phase(self, state, tasks, key, steps, posterior, to_encoder):
         """One PEARL collection phase on the distinct ``tasks`` [R]: reset, ``steps`` steps with
         a z per trajectory from the prior or (``posterior``) from q(z | fresh context)."""
-        env, cfg = self.env, self.config
+        env = self.env
         n = tasks.shape[0]
         k_reset, k_context, k_collect = jax.random.split(key, 3)
         task_params = jax.tree.map(lambda x: jnp.asarray(x)[tasks], self.tasks[0])
-        latent = self.latent_dim
-        if posterior:
-            context = replay.sample(
-                state.encoder_buffer, tasks, jax.random.split(k_context, n), cfg.context_batch
-            )
-            mu, var = jax.vmap(self.encoder.posterior, (None, 0))(state.encoder, context)
-        else:
-            mu, var = jnp.zeros((n, latent)), jnp.ones((n, latent))
+        mu, var = self.phase_latents(state, tasks, k_context, posterior)
 
         def one(p, k_r, k_c, mu_t, var_t):
             r = rollout.reset(env, p, k_r, env.action_dim)

@@ -87,8 +87,8 @@ def _collector(name: str, steps: int, horizon: int | None = None, **overrides):
 
 
 def _collect(collector, state):
-    key, mask, step_keys, _ = collector._begin(state.key, state.actor)
-    state = state.replace(key=key)
+    key, actor, mask, step_keys, _ = collector._begin(state.key, state.actor, state.iteration)
+    state = state.replace(key=key, actor=actor)
     transitions, done, finished_returns, eps = collector.collect(state, mask, step_keys)
     return state, mask, np.asarray(step_keys), transitions, done, finished_returns
 
@@ -206,7 +206,7 @@ def test_host_run_resumes_from_its_checkpoint(stopped_mlp_run, tmp_path):
     assert step == 2
     np.testing.assert_array_equal(state.iteration, [2, 2])
     np.testing.assert_array_equal(state.env_steps, [2 * 64, 2 * 64])
-    np.testing.assert_array_equal(state.buffer.size, [2 * 64, 2 * 64])  # the buffer survived
+    np.testing.assert_array_equal(state.buffer.size, [[2 * 64], [2 * 64]])  # the buffer survived
     # Collection resumed from freshly reset envs: the stored obs of iteration 2 start at a reset.
     first = np.asarray(state.buffer.data.obs[:, 64])
     assert np.all(np.abs(first[:, 1] - 1.4) < 0.1)  # LunarLander starts at the top (y ≈ 1.4)

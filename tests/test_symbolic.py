@@ -47,7 +47,7 @@ def test_layout_is_data():
     assert net.layer_shapes == ((5, 2), (1, 4), (1, 5))
     with pytest.raises(ValueError, match="unknown operator 'tan'"):
         Layout((("tan",),))
-    with pytest.raises(ValueError, match="known layouts: arranged, dense, plain"):
+    with pytest.raises(ValueError, match="known layouts: arranged, csp, csp_cond, dense, plain"):
         get_layout("sparse")
 
 
