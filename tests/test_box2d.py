@@ -81,7 +81,7 @@ def _collector(name: str, steps: int, horizon: int | None = None, **overrides):
     )  # fmt: skip
     trainer = Trainer(cfg)
     if horizon is not None:
-        trainer.__dict__["env"] = envs.make(name, horizon=horizon)  # cached_property
+        trainer.__dict__["_env_and_family"] = (envs.make(name, horizon=horizon), None)  # cached
     state = trainer.init_seeds()
     return trainer, host.HostCollector(trainer), state
 
