@@ -208,7 +208,7 @@ def test_host_run_resumes_from_its_checkpoint(stopped_mlp_run, tmp_path):
     np.testing.assert_array_equal(state.env_steps, [2 * 64, 2 * 64])
     np.testing.assert_array_equal(state.buffer.size, [[2 * 64], [2 * 64]])  # the buffer survived
     # Collection resumed from freshly reset envs: the stored obs of iteration 2 start at a reset.
-    first = np.asarray(state.buffer.data.obs[:, 64])
+    first = np.asarray(state.buffer.data.obs[:, 0, 64])  # [seeds, task, step, obs]
     assert np.all(np.abs(first[:, 1] - 1.4) < 0.1)  # LunarLander starts at the top (y ≈ 1.4)
 
     record = json.loads((run_dir / run.EVAL_FILE).read_text())
