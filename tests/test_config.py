@@ -92,7 +92,9 @@ def test_bad_value_names_the_key(key, value):
 
 
 def test_bad_choice_lists_the_choices():
-    with pytest.raises(UserError, match="actor must be one of symbolic, mlp, pearl, hyper, got 'cnn'"):
+    with pytest.raises(
+        UserError, match="actor must be one of symbolic, mlp, pearl, hyper, got 'cnn'"
+    ):
         config_lib.from_mapping({"actor": "cnn"})
 
 

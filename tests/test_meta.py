@@ -1,0 +1,259 @@
+"""Meta-RL: PEARL's machinery (product of Gaussians, KL, buffers, collection, protocol), CSP's
+export at its z, and the single-task case unchanged by the one-trainer restructure."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import TINY
+from flax import struct
+
+from envs.base import Environment
+from espl_jax import config as config_lib
+from espl_jax import evaluation, pearl, rollout
+from espl_jax import expression as ex
+from espl_jax.policies import Actor, GeneratedSymbolic
+from espl_jax.replay import Transition
+from espl_jax.trainer import Trainer
+
+DATA = Path(__file__).resolve().parent / "data"
+
+
+# Product of Gaussians and KL -------------------------------------------------------------------
+
+
+def test_product_of_gaussians_matches_its_closed_form():
+    mu, var = pearl.product_of_gaussians(jnp.asarray([[1.0], [3.0]]), jnp.asarray([[1.0], [1.0]]))
+    np.testing.assert_allclose([mu[0], var[0]], [2.0, 0.5], rtol=1e-6)
+    rng = np.random.default_rng(0)
+    mus, variances = rng.normal(size=(7, 5)), rng.uniform(0.1, 3.0, size=(7, 5))
+    mu, var = pearl.product_of_gaussians(jnp.asarray(mus), jnp.asarray(variances))
+    # The product's density ∝ Π N(x; μ_n, σ²_n): precision-weighted mean, summed precisions.
+    precision = np.sum(1 / variances, axis=0)
+    np.testing.assert_allclose(var, 1 / precision, rtol=1e-5)
+    np.testing.assert_allclose(mu, np.sum(mus / variances, axis=0) / precision, rtol=1e-5)
+    # Accumulated online, one factor at a time (the protocol), it is the same Gaussian.
+    post = pearl.Posterior.empty(5)
+    for m, v in zip(mus, variances, strict=True):
+        post = post.add(jnp.asarray(m), jnp.asarray(v))
+    np.testing.assert_allclose(post.gaussian()[0], mu, rtol=1e-5)
+    np.testing.assert_allclose(post.gaussian()[1], var, rtol=1e-5)
+    # No factor yet (or only zero-weight ones): the prior N(0, I).
+    empty = pearl.Posterior.empty(5).add(jnp.ones(5), jnp.ones(5), 0.0)
+    np.testing.assert_array_equal(empty.gaussian()[0], 0.0)
+    np.testing.assert_array_equal(empty.gaussian()[1], 1.0)
+
+
+@pytest.mark.parametrize("mu, var", [(0.0, 1.0), (1.3, 0.2), (-2.0, 4.0)])
+def test_kl_to_standard_normal_matches_numerical_integration(mu, var):
+    x = np.linspace(mu - 12 * math.sqrt(var), mu + 12 * math.sqrt(var), 200_001)
+    p = np.exp(-((x - mu) ** 2) / (2 * var)) / math.sqrt(2 * math.pi * var)
+    log_q = -(x**2) / 2 - 0.5 * math.log(2 * math.pi)
+    numeric = np.trapezoid(p * (np.log(p + 1e-300) - log_q), x)
+    got = float(pearl.kl_to_standard_normal(jnp.asarray([mu]), jnp.asarray([var])))
+    assert got == pytest.approx(numeric, rel=1e-4, abs=1e-6)
+    two = pearl.kl_to_standard_normal(jnp.asarray([mu, mu]), jnp.asarray([var, var]))
+    assert float(two) == pytest.approx(2 * got, rel=1e-6)  # summed over latent dimensions
+
+
+# Buffers and collection (PEARL's rl_algorithm) ---------------------------------------------------
+
+META_TINY = {
+    "env": "cartpole_fl_ood", "actor": "pearl", "iterations": 1, "updates_per_iteration": 2,
+    "meta_batch": 3, "batch_size": 8, "context_batch": 6, "initial_steps": 30,
+    "tasks_per_iteration": 3, "prior_steps": 20, "posterior_steps": 25, "task_buffer_size": 200,
+    "critic_hidden": [16], "encoder_hidden": [16], "pearl_hidden": [16], "eval_steps": 40,
+    "eval_runs": 2,
+}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def meta_trainer():
+    trainer = Trainer(config_lib.from_mapping(META_TINY))
+    state = jax.jit(trainer.init)(jax.random.PRNGKey(0))
+    warm = jax.jit(trainer.warmup)(state)
+    return trainer, warm
+
+
+def test_warmup_fills_both_buffers_of_every_training_task(meta_trainer):
+    trainer, warm = meta_trainer
+    n = trainer.num_train_tasks
+    np.testing.assert_array_equal(warm.buffer.size, [30] * n)
+    np.testing.assert_array_equal(warm.encoder_buffer.size, [30] * n)
+    assert int(warm.env_steps) == 30 * n
+    # The tasks really differ: a force of 12 N moves the cart unlike one of 8 N.
+    obs = np.asarray(warm.buffer.data.next_obs[:, :30])
+    assert not np.allclose(obs[0], obs[1])
+
+
+def test_an_iteration_clears_the_visited_encoder_buffers_and_refills_them_with_prior_data(
+    meta_trainer,
+):
+    trainer, warm = meta_trainer
+    state, _ = jax.jit(trainer.collect_meta)(warm, jax.random.PRNGKey(4))
+    rl_size, enc_size = np.asarray(state.buffer.size), np.asarray(state.encoder_buffer.size)
+    visited = np.flatnonzero(rl_size > 30)
+    assert len(visited) == 3  # distinct tasks
+    np.testing.assert_array_equal(rl_size[visited], 30 + 20 + 25)  # prior + posterior
+    np.testing.assert_array_equal(enc_size[visited], 20)  # cleared, then prior data only
+    others = np.setdiff1d(np.arange(trainer.num_train_tasks), visited)
+    np.testing.assert_array_equal(rl_size[others], 30)
+    np.testing.assert_array_equal(enc_size[others], 30)
+    for t in visited:  # the encoder buffer holds exactly the prior phase of the RL buffer
+        np.testing.assert_array_equal(
+            state.encoder_buffer.data.obs[t, :20], state.buffer.data.obs[t, 30:50]
+        )
+    np.testing.assert_array_equal(
+        state.encoder_buffer.data.obs[others[0], :30], warm.encoder_buffer.data.obs[others[0], :30]
+    )
+    assert int(state.env_steps) == int(warm.env_steps) + 3 * 45
+
+
+def test_one_meta_update_trains_the_encoder_through_the_critic(meta_trainer):
+    trainer, warm = meta_trainer
+    tau, l_min = trainer.schedules(jnp.asarray(0))
+    new, metrics = jax.jit(trainer.sac.update)(warm, jax.random.PRNGKey(1), tau, l_min)
+    assert np.isfinite(float(metrics["kl"])) and float(metrics["kl"]) >= 0
+    moved = jax.tree.map(lambda a, b: float(jnp.abs(a - b).max()), new.encoder, warm.encoder)
+    assert max(jax.tree.leaves(moved)) > 0
+    for tree in (new.actor, new.critic):
+        assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(tree))
+
+
+# The protocol on a probe env ---------------------------------------------------------------
+
+
+@struct.dataclass
+class ProbeParams:
+    goal: jax.Array
+
+
+@struct.dataclass
+class ProbeState:
+    t: jax.Array
+
+
+class ProbeEnv(Environment):
+    """Reward −(a − g)²: the best action is the task's goal g, whatever the observation, and only
+    the transition's next observation (which shows g) tells the tasks apart."""
+
+    name, obs_dim, action_dim, horizon = "probe", 1, 1, 10
+    action_low, action_high = np.array([-1.0]), np.array([1.0])
+
+    @property
+    def default_params(self):
+        return ProbeParams(jnp.asarray(0.0))
+
+    def reset(self, key, params):
+        return jnp.zeros(1), ProbeState(jnp.zeros((), jnp.int32))
+
+    def step(self, key, state, action, params):
+        t = state.t + 1
+        reward = -((action[0] - params.goal) ** 2)
+        done = t >= self.horizon
+        return jnp.full(1, params.goal), ProbeState(t), reward, jnp.asarray(False), done, {}
+
+
+class ProbeEncoder:
+    """Each transition's factor is N(s'[0], 1e-4): the posterior mean is the goal."""
+
+    latent_dim = 2
+
+    def factors(self, params, t: Transition):
+        mu = jnp.stack([t.next_obs[0], jnp.zeros(())])
+        return mu, jnp.full(2, 1e-4)
+
+
+@dataclass(frozen=True)
+class ProbeActor(Actor):
+    """Acts a = z[0] (deterministically): only a good z scores well."""
+
+    def policy(self, params, part):
+        return part  # the task policy is z itself
+
+    def mean_and_log_std(self, policy, mask, obs):
+        mean = jnp.arctanh(jnp.clip(policy[:1], -0.999, 0.999))
+        return mean, jnp.zeros(1), jnp.zeros(())
+
+
+def test_protocol_adapts_to_the_task_from_its_own_context():
+    env, actor = ProbeEnv(), ProbeActor(config_lib.Config(), 1, 1, 2)
+    goals = jnp.asarray([-0.6, 0.1, 0.7])
+
+    def one(goal, key):
+        return rollout.adapt_and_evaluate(
+            env, actor, ProbeEncoder(), {}, None, ProbeParams(goal), key, 30, 2
+        )
+
+    keys = jax.random.split(jax.random.PRNGKey(0), 3)
+    out = jax.jit(jax.vmap(one))(goals, keys)
+    np.testing.assert_array_equal(out.trajectories, [3, 3, 3])  # 30 steps of 10-step episodes
+    # Trajectories 1 and 2 act on prior samples; the 3rd on the posterior of the 20 transitions.
+    np.testing.assert_allclose(out.z[:, 0], goals, atol=0.02)
+    assert np.all(np.asarray(out.final_return) > -0.1)
+    assert np.mean(np.asarray(out.first_return)) < -1.0
+
+
+# CSP: the exported formula is the generated network at its z -----------------------------------
+
+
+def test_csp_export_equals_the_generated_network_at_z(tmp_path):
+    cfg = config_lib.from_mapping({"env": "cartpole_fl_ood", "layout": "csp"})
+    actor = GeneratedSymbolic(cfg, obs_dim=4, action_dim=1, latent_dim=5)
+    params = actor.init(jax.random.PRNGKey(0))
+    # Ψ's last bias decides most paths whatever z is: a sparse formula that exports quickly.
+    rng = np.random.default_rng(1)
+    bias = params["psi"]["params"]["members"]["_TorchDense_2"]["bias"]
+    keep = rng.random(bias.shape) < 0.04
+    last_inputs = 4 + sum(len(ops) for ops in actor.symbolic.layout.layers)
+    keep[:, -last_inputs : -last_inputs + 4] = True  # the output sees the observation directly
+    params["psi"]["params"]["members"]["_TorchDense_2"]["bias"] = jnp.where(keep, 8.0, -8.0)
+    z = jax.random.normal(jax.random.PRNGKey(2), (5,))
+    policy = jax.tree.map(np.asarray, actor.at(params, z))
+    mask = actor.eval_mask(policy)
+    exprs = ex.network_expressions(actor.symbolic, policy["mean"], policy["probs"])
+    source = ex.to_python(exprs, 4, np.array([-1.0]), np.array([1.0]))
+    path = tmp_path / "policy.py"
+    path.write_text(source)
+    module = evaluation.load_policy(path)
+    obs = rng.normal(scale=0.3, size=(32, 4)).astype(np.float32)
+    network = jax.vmap(actor.deterministic, (None, None, 0))(policy, mask, obs)
+    got = np.array([module.act(o) for o in obs])
+    np.testing.assert_allclose(got, np.asarray(network), atol=1e-5)
+    assert len(np.unique(np.round(got, 4))) > 1
+
+
+# The single-task case after the restructure ------------------------------------------------------
+
+
+def test_single_task_run_is_the_pre_restructure_one():
+    """One iteration of the tiny config from the same key as 76fcfa2 (the last commit before the
+    task axis, policy kinds and PEARL machinery) gives its learner; recorded on a 2-core x86 CPU
+    there (bitwise equal on that machine; other CPUs may round XLA's kernels differently)."""
+    recorded = json.loads((DATA / "single_task_76fcfa2.json").read_text())
+    cfg = config_lib.from_mapping({**TINY, **recorded["config"]})
+    trainer = Trainer(cfg)
+    key = jax.random.split(jax.random.PRNGKey(0), 1)  # 76fcfa2's key for seed 0 of one seed
+    state = jax.jit(jax.vmap(trainer.init))(key)
+    state, _ = trainer.compiled_chunk(1)(state)
+    actor = jax.device_get(state.actor)
+    close = {"rtol": 1e-4, "atol": 1e-6}
+    np.testing.assert_allclose(
+        np.asarray(actor["mean"]["w"][-1]).ravel()[:40], recorded["mean_w_last"], **close
+    )
+    np.testing.assert_allclose(
+        np.asarray(actor["mean"]["b"][0]).ravel(), recorded["mean_b_0"], **close
+    )
+    np.testing.assert_allclose(
+        np.asarray(jax.tree.leaves(state.critic)[1]).ravel()[:40],
+        recorded["critic_q1_kernel0"],
+        **close,
+    )
+    assert float(np.asarray(state.log_alpha)[0]) == pytest.approx(recorded["log_alpha"], rel=1e-4)
