@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+import envs
 from espl_jax import evaluation, run
 from espl_jax.cli import run_main
 from espl_jax.config import UserError
@@ -27,6 +28,11 @@ def main(argv: list[str] | None = None) -> int:
     run_dir = Path(args.run_dir)
     config = run.saved_config(run_dir)
     record = run.read_eval(run_dir) or {}  # read first: a corrupt eval.json is never overwritten
+    if envs.is_family(config.env):
+        raise UserError(
+            f"{config.env} is a meta-RL task family: its run was evaluated by PEARL's protocol "
+            "(eval.json), and each test task's adapted policy.py is in test_tasks/<i>/"
+        )
     if not evaluation.has_reference(config.env):
         raise UserError(
             f"{config.env} has no reference environment to evaluate policy.py in "

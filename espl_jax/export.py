@@ -1,4 +1,11 @@
-"""python -m espl_jax.export RUN_DIR --format text|latex|python|c: print a run's formula."""
+"""python -m espl_jax.export RUN_DIR: print or write a run's formula in one of four formats.
+
+- default: the formula of the run's newest checkpoint (the best seed of eval.json);
+- ``--pick best|shortest-within PCT``: one from the hall of fame (formulas.jsonl: every chunk's
+  formula with its selection return), written as expression.txt and policy.py into RUN/picked/
+  (or ``--output DIR``);
+- ``--task I`` (meta-RL runs): the CSP formula adapted to test task I by the protocol.
+"""
 
 from __future__ import annotations
 
@@ -10,33 +17,63 @@ import jax
 import numpy as np
 
 from espl_jax import expression as ex
+from espl_jax import halloffame as hof
 from espl_jax import run
 from espl_jax.cli import run_main
 from espl_jax.config import UserError
 
 FORMATS = ("text", "latex", "python", "c")
+PICK_DIR = "picked"
 
 
-def main(argv: list[str] | None = None) -> int:
+def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m espl_jax.export",
-        description="Export the symbolic policy of a run from its newest checkpoint.",
+        description="Export the symbolic policy of a run: from its newest checkpoint, from its "
+        "hall of fame (--pick), or adapted to a meta-RL test task (--task).",
     )
     p.add_argument("run_dir", help="a run directory written by espl_jax.train")
     p.add_argument("--format", choices=FORMATS, default="text")
     p.add_argument("--seed", type=int, help="which seed (default: the best one in eval.json)")
-    p.add_argument("--output", "-o", help="write to this file instead of standard output")
-    args = p.parse_args(argv)
+    p.add_argument(
+        "--output", "-o", help="write to this file (with --pick: this directory) instead"
+    )
+    p.add_argument(
+        "--pick",
+        nargs="+",
+        metavar="HOW",
+        help="'best' (highest selection return) or 'shortest-within PCT' (the shortest formula "
+        "within PCT percent of the best): writes expression.txt and policy.py",
+    )
+    p.add_argument("--task", type=int, help="meta-RL: the formula adapted to test task TASK")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
     config = run.saved_config(args.run_dir)
     if config.actor != "symbolic":
-        raise UserError(f"{args.run_dir} trained an MLP actor: there is no formula to export")
+        raise UserError(
+            f"{args.run_dir} trained an {config.actor.upper()} actor: there is no formula to export"
+        )
+    if args.pick:
+        return pick(args)
     trainer, state, _ = run.load_run(args.run_dir)
+    if trainer.meta and args.task is None:
+        raise UserError(
+            f"{args.run_dir} is a meta-RL run: give --task I for the formula adapted to test "
+            f"task I (0 … {trainer.family.n_test - 1})"
+        )
+    if not trainer.meta and args.task is not None:
+        raise UserError("--task applies to meta-RL runs only")
     seed = args.seed
-    if seed is None:
+    record = None
+    if seed is None or trainer.meta:
         try:
             record = run.read_eval(args.run_dir)
         except UserError as err:
             raise UserError(f"{err}; give --seed to export a seed without it") from None
+    if seed is None:
         seed = record.get("best_seed", 0) if record else 0
         if not isinstance(seed, int) or isinstance(seed, bool):
             raise UserError(
@@ -46,18 +83,65 @@ def main(argv: list[str] | None = None) -> int:
     if not 0 <= seed < trainer.config.seeds:
         raise UserError(f"--seed must be in [0, {trainer.config.seeds - 1}]")
     actor = jax.tree.map(lambda x: np.asarray(x[seed]), state.actor)
+    if trainer.meta:
+        tasks = (record or {}).get("test", {}).get("per_task", [])
+        if not 0 <= args.task < len(tasks):
+            raise UserError(
+                f"--task must name a test task evaluated in eval.json (0 … {len(tasks) - 1})"
+            )
+        if seed != record.get("best_seed"):
+            raise UserError("eval.json holds the adapted latents of the best seed only")
+        actor = trainer.task_policy(actor, np.asarray(tasks[args.task]["z"]))
     exprs = run.export_expressions(trainer, actor)
-    env = trainer.env
+    write(exprs, trainer.env, args.format, args.output)
+    return 0
+
+
+def write(exprs: list, env, fmt: str, output: str | None) -> None:
     text = {
         "text": lambda: ex.to_text(exprs),
         "latex": lambda: ex.to_latex(exprs),
         "python": lambda: ex.to_python(exprs, env.obs_dim, env.action_low, env.action_high),
         "c": lambda: ex.to_c(exprs, env.obs_dim, env.action_low, env.action_high),
-    }[args.format]()
-    if args.output:
-        Path(args.output).write_text(text if text.endswith("\n") else text + "\n")
+    }[fmt]()
+    if output:
+        Path(output).write_text(text if text.endswith("\n") else text + "\n")
     else:
         print(text)
+
+
+def pick(args: argparse.Namespace) -> int:
+    how = args.pick[0]
+    within = None
+    if how == "shortest-within":
+        if len(args.pick) != 2:
+            raise UserError("--pick shortest-within takes a percentage, e.g. 5")
+        try:
+            within = float(args.pick[1])
+        except ValueError:
+            raise UserError(f"--pick shortest-within: {args.pick[1]!r} is not a number") from None
+    elif how != "best" or len(args.pick) != 1:
+        raise UserError("--pick takes 'best' or 'shortest-within PCT'")
+    path = Path(args.run_dir) / hof.FORMULAS_FILE
+    if not path.is_file():
+        raise UserError(f"{args.run_dir} has no hall of fame ({hof.FORMULAS_FILE} is missing)")
+    rows = hof.read(path)
+    if args.seed is not None:
+        rows = [r for r in rows if r["seed"] == args.seed]
+    chosen = hof.pick(rows, how, within)
+    exprs = hof.expressions(chosen)
+    env = run.Trainer(run.saved_config(args.run_dir)).env
+    out = Path(args.output) if args.output else Path(args.run_dir) / PICK_DIR
+    out.mkdir(parents=True, exist_ok=True)
+    (out / run.EXPRESSION_FILE).write_text(ex.to_text(exprs) + "\n")
+    source = ex.to_python(exprs, env.obs_dim, env.action_low, env.action_high)
+    (out / run.POLICY_FILE).write_text(source)
+    print(
+        f"picked iteration {chosen['iteration']}, seed {chosen['seed']}: selection return "
+        f"{chosen['selection_return']:.2f}, length {chosen['length']:.0f}; wrote "
+        f"{out / run.EXPRESSION_FILE} and {out / run.POLICY_FILE}"
+    )
+    print(ex.to_text(exprs))
     return 0
 
 

@@ -32,7 +32,11 @@ def parser() -> argparse.ArgumentParser:
         help="YAML file overriding configs/ENV.yaml (precedence: defaults < configs/ENV.yaml < "
         "--config < flags); it may set env",
     )
-    p.add_argument("--actor", choices=["symbolic", "mlp"], help="symbolic (ESPL) or mlp (SAC)")
+    p.add_argument(
+        "--actor",
+        choices=["symbolic", "mlp", "pearl", "hyper"],
+        help="symbolic (ESPL; CSP on a task family), mlp (SAC), pearl or hyper (task families)",
+    )
     p.add_argument("--seed", type=int, help="base random seed")
     p.add_argument("--out", help="run directory (default: runs/ENV-ACTOR-TIMESTAMP)")
     p.add_argument(
@@ -76,6 +80,20 @@ def main(argv: list[str] | None = None) -> int:
     )
     wall = time.perf_counter() - started
     print(f"\nrun directory: {run_dir}")
+    for warning in result.get("warnings", []):
+        print(f"warning: {warning}")
+    if "test" in result:
+        print_meta(result)
+    else:
+        print_single_task(result)
+    t = result["training"]
+    print(
+        f"trained on {t['episodes']} episodes / {t['env_steps']} env steps; wall time {wall:.0f} s"
+    )
+    return 0
+
+
+def print_single_task(result: dict) -> None:
     if "formula" in result:
         print(f"formula (seed {result['best_seed']}, length {result['length']:.0f}):")
         print("  " + result["formula"].replace("\n", "\n  "))
@@ -90,11 +108,22 @@ def main(argv: list[str] | None = None) -> int:
             f"policy.py in the reference env, {ref['episodes']} episodes: "
             f"{ref['mean']:.2f} ± {ref['std']:.2f}"
         )
-    t = result["training"]
+
+
+def print_meta(result: dict) -> None:
+    tasks = result["test"]["per_task"]
     print(
-        f"trained on {t['episodes']} episodes / {t['env_steps']} env steps; wall time {wall:.0f} s"
+        f"{result['actor']} on {len(tasks)} test tasks (PEARL's protocol, seed "
+        f"{result['best_seed']}): mean return {result['test']['mean']:.2f}; "
+        f"on {result['train']['tasks']} training tasks {result['train']['mean']:.2f}"
     )
-    return 0
+    if "length" in result:
+        print(
+            f"adapted formulas: mean length {result['length']:.1f}, "
+            f"{result['selected_paths_per_action']:.1f} selected paths per action; "
+            f"test_tasks/<i>/policy.py for each task, e.g. task 0:"
+        )
+        print("  " + tasks[0]["formula"].replace("\n", "\n  "))
 
 
 if __name__ == "__main__":
