@@ -46,7 +46,7 @@ BARS = {
 
 
 def parse_seeds(text: str) -> list[int]:
-    """"0-4" -> [0, 1, 2, 3, 4]; "0,2,5" -> [0, 2, 5]; contiguous ranges only for vmapped."""
+    """ "0-4" -> [0, 1, 2, 3, 4]; "0,2,5" -> [0, 2, 5]; contiguous ranges only for vmapped."""
     seeds: list[int] = []
     for part in text.split(","):
         if "-" in part:
