@@ -40,6 +40,9 @@ class Config:
     selector: str = "probabilistic"  # path selector: probabilistic | l1 (ablation)
     seed: int = 0
     seeds: int = 1  # independent runs, vmapped in one computation; the best formula is kept
+    # Devices the seed axis is sharded over (jax.sharding, one mesh axis "seeds"): 0 = as many
+    # of jax.devices() as divide ``seeds``; 1 = one device.
+    devices: int = 0
 
     # Budget (Algorithm 1): iterations of (collect, update).
     iterations: int = 100
@@ -194,7 +197,12 @@ _NON_NEGATIVE_FLOAT = (
     "logit_clamp_scale",
     "weight_l1_scale",
 )
-_NON_NEGATIVE_INT = ("initial_steps", "posterior_steps", "eval_exploration_trajectories")
+_NON_NEGATIVE_INT = (
+    "initial_steps",
+    "posterior_steps",
+    "eval_exploration_trajectories",
+    "devices",
+)
 
 
 def _validate(c: Config) -> None:

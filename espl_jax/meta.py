@@ -107,7 +107,8 @@ def finish(
         },
         "test": {"mean": float(test_returns[best].mean()), "per_task": per_task},
         "train": {"mean": float(train_returns[best].mean()), "tasks": n},
-        "evaluated_in": "jax",
+        "evaluated_in": "gymnasium" if trainer.on_host else "jax",
+        "devices": trainer.device_info,
         "per_seed": [
             {
                 "seed": s,

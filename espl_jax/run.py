@@ -84,12 +84,16 @@ def saved_config(run_dir: str | Path) -> Config:
     return config_lib.load(path)
 
 
-def resume_config(run_dir: str | Path, iterations: int | None = None) -> Config:
-    """The saved config of a run directory, with ``iterations`` changed to extend it."""
+def resume_config(
+    run_dir: str | Path, iterations: int | None = None, devices: int | None = None
+) -> Config:
+    """The saved config of a run directory, with ``iterations`` changed to extend it (and the
+    devices to run on, which do not change the results)."""
     config = saved_config(run_dir)
-    if iterations is not None:
-        config = config_lib.from_mapping({"iterations": iterations}, base=config)
-    return config
+    changes = {
+        k: v for k, v in {"iterations": iterations, "devices": devices}.items() if v is not None
+    }
+    return config_lib.from_mapping(changes, base=config) if changes else config
 
 
 def train(
@@ -114,7 +118,9 @@ def train(
     """
     run_dir = Path(run_dir)
     trainer = Trainer(config)
-    trainer.env  # noqa: B018  (fail fast on an unknown env, before anything is written)
+    # Fail fast on an unknown env or too many devices, before anything is written.
+    trainer.env  # noqa: B018
+    trainer.mesh  # noqa: B018
     if resume:
         start, state = restore(run_dir, trainer)
         if start > config.iterations:
@@ -234,7 +240,7 @@ def restore(run_dir: str | Path, trainer: Trainer) -> tuple[int, TrainState]:
         return with_capacity(template, stored_capacity)
 
     step, state = checkpoint.restore_latest(Path(run_dir) / CHECKPOINT_DIR, like)
-    return step, with_capacity(state, capacity)
+    return step, trainer.place(with_capacity(state, capacity))
 
 
 def chunk_runner(trainer: Trainer) -> tuple[Any, contextlib.AbstractContextManager]:
@@ -288,7 +294,7 @@ def adapter(trainer: Trainer, task_params: Any):
         from espl_jax.host_meta import HostAdapter
 
         return HostAdapter(trainer, task_params)
-    return jax.jit(jax.vmap(lambda s, k: trainer.adapt(s, task_params, k)))
+    return trainer.over_seeds(lambda s, k: trainer.adapt(s, task_params, k))
 
 
 def evaluator(trainer: Trainer, episodes: int):
@@ -357,6 +363,7 @@ def finish(
             "wall_seconds_training": round(train_seconds, 1),
         },
         "jax_eval": per_seed[best]["jax_eval"],
+        "devices": trainer.device_info,
         # where "jax_eval" ran: JAX envs in JAX, host (Box2D) envs in gymnasium
         "evaluated_in": "gymnasium" if trainer.on_host else "jax",
         "per_seed": per_seed,

@@ -43,7 +43,17 @@ def parser() -> argparse.ArgumentParser:
         "--resume",
         metavar="RUN_DIR",
         help="continue a run from its last checkpoint with its saved config; only --iterations "
-        "(to extend it) and --no-progress may be given with it",
+        "(to extend it), --devices and --no-progress may be given with it",
+    )
+    p.add_argument(
+        "--devices",
+        type=int,
+        help="devices to shard the seeds over (default: all of jax.devices() that divide --seeds)",
+    )
+    p.add_argument(
+        "--distributed",
+        action="store_true",
+        help="call jax.distributed.initialize() first (multi-host runs; see the README)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
@@ -55,15 +65,19 @@ RUN_DEFINING_FLAGS = ("env", "seeds", "config", "actor", "seed", "out")
 
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
+    if args.distributed:
+        import jax
+
+        jax.distributed.initialize()  # coordinator, process count and id from the environment
     if args.resume:
         given = [f"--{name}" for name in RUN_DEFINING_FLAGS if getattr(args, name) is not None]
         if given:
             raise UserError(
                 f"--resume continues a run with its saved config; {', '.join(given)} cannot be "
-                "changed on resume (only --iterations and --no-progress can)"
+                "changed on resume (only --iterations, --devices and --no-progress can)"
             )
         run_dir = Path(args.resume)
-        config = run.resume_config(run_dir, iterations=args.iterations)
+        config = run.resume_config(run_dir, iterations=args.iterations, devices=args.devices)
     else:
         config = config_lib.resolve(
             args.env,
@@ -72,6 +86,7 @@ def main(argv: list[str] | None = None) -> int:
             iterations=args.iterations,
             actor=args.actor,
             seed=args.seed,
+            devices=args.devices,
         )
         run_dir = Path(args.out) if args.out else run.new_run_dir(config)
     started = time.perf_counter()

@@ -209,8 +209,51 @@ class Trainer:
         return jnp.stack([jax.random.PRNGKey(int(s)) for s in seeds])
 
     def init_seeds(self) -> TrainState:
-        """States for ``config.seeds`` seeds stacked on a leading axis."""
-        return jax.jit(jax.vmap(self.init))(self.seed_keys())
+        """States for ``config.seeds`` seeds stacked on a leading axis (sharded, see ``place``)."""
+        return self.over_seeds(self.init)(self.place(self.seed_keys()))
+
+    @cached_property
+    def mesh(self) -> jax.sharding.Mesh | None:
+        """A one-axis mesh ("seeds") over the devices the seed axis is split across, or None
+        for one device. ``devices: 0`` takes the most of ``jax.devices()`` (every host's, after
+        ``jax.distributed.initialize()``) that divides ``seeds``."""
+        available = jax.devices()
+        wanted = self.config.devices or len(available)
+        if wanted > len(available):
+            raise UserError(f"devices: {wanted} asked for, {len(available)} available")
+        n = max(d for d in range(1, wanted + 1) if self.config.seeds % d == 0)
+        if n == 1:
+            return None
+        return jax.sharding.Mesh(np.asarray(available[:n]), ("seeds",))
+
+    def place(self, state: Any) -> Any:
+        """Shard a seed-stacked pytree over ``mesh`` (each device holds whole seeds); jit then
+        runs the vmapped chunk SPMD, one device's seeds per device, with no communication."""
+        if self.mesh is None:
+            return state
+        sharding = jax.sharding.NamedSharding(self.mesh, jax.sharding.PartitionSpec("seeds"))
+        return jax.device_put(state, sharding)
+
+    def over_seeds(self, fn, donate: bool = False):
+        """``fn`` of one seed, jitted and vmapped over the leading seed axis of every argument.
+
+        With a mesh it is ``shard_map``-ped: each device vmaps ``fn`` over its own seeds, with
+        no communication between devices. A seed computes what it computes on one device up to
+        the last bit of rounding (XLA compiles the per-device program apart, and its matrix
+        products round differently: tests/test_sharding.py).
+        """
+        batched = jax.vmap(fn)
+        if self.mesh is not None:
+            spec = jax.sharding.PartitionSpec("seeds")
+            batched = jax.shard_map(
+                batched, mesh=self.mesh, in_specs=spec, out_specs=spec, check_vma=False
+            )
+        return jax.jit(batched, donate_argnums=0 if donate else ())
+
+    @property
+    def device_info(self) -> dict[str, Any]:
+        devices = self.mesh.devices.ravel() if self.mesh is not None else jax.devices()[:1]
+        return {"count": len(devices), "platform": devices[0].platform}
 
     # Collection -----------------------------------------------------------------------------
 
@@ -370,7 +413,7 @@ class Trainer:
 
     def compiled_warmup(self):
         """jit(vmap(warmup)) over seeds; the state buffers are donated."""
-        return jax.jit(jax.vmap(self.warmup), donate_argnums=0)
+        return self.over_seeds(self.warmup, donate=True)
 
     # One iteration and a chunk of them --------------------------------------------------------
 
@@ -449,7 +492,7 @@ class Trainer:
 
     def compiled_chunk(self, length: int):
         """jit(vmap(chunk)) over the leading seed axis; the state buffers are donated."""
-        return jax.jit(jax.vmap(lambda s: self.chunk(s, length)), donate_argnums=0)
+        return self.over_seeds(lambda s: self.chunk(s, length), donate=True)
 
     # Evaluation in JAX -----------------------------------------------------------------------
 
@@ -464,7 +507,7 @@ class Trainer:
 
     def compiled_evaluate(self, episodes: int):
         """jit(vmap(evaluate)) over seeds: (actor params [S, ...], keys [S, 2]) -> [S, E]."""
-        return jax.jit(jax.vmap(lambda p, k: self.evaluate(p, k, episodes)))
+        return self.over_seeds(lambda p, k: self.evaluate(p, k, episodes))
 
     def adapt(self, state: TrainState, task_params: Any, key: jax.Array) -> rollout.Adapted:
         """Meta-RL: PEARL's protocol, ``eval_runs`` runs on each task of ``task_params`` [N]:
@@ -484,7 +527,7 @@ class Trainer:
     def compiled_adapt(self, split: str):
         """jit(vmap(adapt)) over seeds on the "test" or "train" tasks: (state, keys [S, 2])."""
         params = self.tasks[1] if split == "test" else self.tasks[0]
-        return jax.jit(jax.vmap(lambda s, k: self.adapt(s, params, k)))
+        return self.over_seeds(lambda s, k: self.adapt(s, params, k))
 
     def task_policy(self, actor_params: dict, z: np.ndarray | None) -> dict:
         """The task policy at z (numpy), for export: ESPL's own params, CSP's Φ/Ψ at z."""
