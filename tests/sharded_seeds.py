@@ -1,8 +1,8 @@
 """Run by tests/test_sharding.py in a process with 2 CPU devices (XLA_FLAGS set by the test).
 
-Trains the tiny config for one short iteration twice — 2 seeds sharded over 2 devices, and the
-same 2 seeds on one device — and prints, as JSON, what the sharded run recorded and used and how
-far each seed's learned params are from the one-device run's.
+Initialises the tiny config's 2 seeds and trains them for one short chunk twice — sharded over
+2 devices and on one device — and prints, as JSON, where the sharded state lives, what the
+trainer records for eval.json, and how far each seed's learned params are from one device's.
 """
 
 import json
@@ -16,27 +16,27 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from conftest import TINY  # noqa: E402
 
 from espl_jax import config as config_lib  # noqa: E402
-from espl_jax import run  # noqa: E402
 from espl_jax.trainer import Trainer  # noqa: E402
 
-out = Path(sys.argv[1])
 tiny = {**TINY, "seeds": 2, "iterations": 1, "chunk_iterations": 1, "updates_per_iteration": 2}
 
 
-def learned(run_dir: Path) -> list[np.ndarray]:
-    _, state, _ = run.load_run(run_dir)
-    return [np.asarray(leaf) for leaf in jax.tree.leaves((state.actor, state.critic))]
+def train(devices: int) -> tuple[Trainer, list[np.ndarray], set[int]]:
+    trainer = Trainer(config_lib.from_mapping({**tiny, "devices": devices}))
+    trainer.env  # noqa: B018  (built outside any trace, as run.train does)
+    state = trainer.init_seeds()
+    placed = {len(leaf.sharding.device_set) for leaf in jax.tree.leaves(state)}
+    state, _ = trainer.compiled_chunk(1)(state)
+    learned = [np.asarray(leaf) for leaf in jax.tree.leaves((state.actor, state.critic))]
+    return trainer, learned, placed
 
 
-sharded_config = config_lib.from_mapping({**tiny, "devices": 2})
-placed = Trainer(sharded_config).init_seeds()
-sharded = run.train(sharded_config, out / "sharded", show_progress=False)
-run.train(config_lib.from_mapping({**tiny, "devices": 1}), out / "one_device", show_progress=False)
-two, one = learned(out / "sharded"), learned(out / "one_device")
+sharded, two, placed = train(devices=2)
+_, one, _ = train(devices=1)
 report = {
     "jax_devices": len(jax.devices()),
-    "eval_devices": sharded["devices"],
-    "state_devices": sorted({len(leaf.sharding.device_set) for leaf in jax.tree.leaves(placed)}),
+    "eval_devices": sharded.device_info,
+    "state_devices": sorted(placed),
     # per seed: the largest difference of any learned leaf between 2 devices and 1
     "max_abs_diff": [
         max(float(np.max(np.abs(a[s] - b[s]))) for a, b in zip(two, one, strict=True))

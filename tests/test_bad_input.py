@@ -11,6 +11,7 @@ instead of failing (a metrics line cut short by a kill, a missing eval.json) are
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from collections.abc import Callable
 from dataclasses import dataclass, fields
@@ -341,6 +342,12 @@ def test_bad_input(case, tmp_path, capfd, request):
         assert fragment in lines[-1], lines[-1]
     assert snapshot(run_dir) == before, "the command changed the run directory"
     assert not (tmp_path / "empty" / "new").exists(), "a run that cannot start wrote a directory"
+    if os.environ.get("BAD_INPUT_TABLE"):  # the table of cases and messages for the docs
+        shown = " ".join(case.args).replace("{", "<").replace("}", ">")
+        if case.config_text:
+            shown += f"` with `{case.config_text.strip()!r}"
+        with open(os.environ["BAD_INPUT_TABLE"], "a") as table:
+            table.write(f"| {case.id} | `{case.module} {shown}` | `{lines[-1]}` |\n")
 
 
 # Recoverable damage ---------------------------------------------------------------------------
@@ -379,3 +386,56 @@ def test_export_without_eval_json_exports_seed_0(finished_run, tmp_path, capfd):
     assert status == 0, err
     status_default, out_default, _ = invoke(capfd, "export", str(run_dir))
     assert status_default == 0 and out_default == out and out.startswith("a0 = ")
+
+
+# A run directory missing each one of its files in turn ------------------------------------------
+
+RUN_FILES = ("checkpoints", "config.yaml", "eval.json", "expression.txt", "formulas.jsonl",
+             "hall_of_fame.png", "learning_curve.png", "metrics.jsonl", "policy.py")  # fmt: skip
+COMMANDS = {
+    "evaluate": ("evaluate", "{run}", "--episodes", "2"),
+    "export": ("export", "{run}"),
+    "resume": ("train", "--resume", "{run}", "--no-progress"),
+}
+# What cannot work without the file; everything else must succeed without it.
+NEEDED = {
+    ("config.yaml", "evaluate"): "is not a run directory (no config.yaml)",
+    ("config.yaml", "export"): "is not a run directory (no config.yaml)",
+    ("config.yaml", "resume"): "is not a run directory (no config.yaml)",
+    ("checkpoints", "export"): "checkpoints/ is missing",
+    ("checkpoints", "resume"): "checkpoints/ is missing",
+    ("policy.py", "evaluate"): "no exported policy",
+}
+
+
+def test_the_missing_file_table_lists_every_file_of_a_run(finished_run):
+    assert sorted(p.name for p in finished_run.iterdir()) == sorted(RUN_FILES)
+
+
+@pytest.mark.parametrize(
+    "name, command",
+    [
+        pytest.param(
+            n, c, marks=[pytest.mark.slow] if c == "resume" and (n, c) not in NEEDED else []
+        )
+        for n in RUN_FILES
+        for c in COMMANDS
+    ],
+)
+def test_run_missing_a_file(name, command, finished_run, tmp_path, capfd):
+    """Either a clean error naming what is missing (and no other file touched) or success."""
+    run_dir = tmp_path / "run"
+    shutil.copytree(finished_run, run_dir)
+    remove(name)(run_dir)
+    before = snapshot(run_dir)
+    module, *args = COMMANDS[command]
+    status, out, err = invoke(capfd, module, *(a.format(run=run_dir) for a in args))
+    assert "Traceback" not in out + err, out + err
+    if (name, command) in NEEDED:
+        assert status == 2, out + err
+        lines = err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("error: "), err
+        assert NEEDED[name, command] in lines[0], lines[0]
+        assert snapshot(run_dir) == before
+    else:
+        assert status == 0, out + err

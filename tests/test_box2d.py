@@ -187,6 +187,7 @@ def stopped_mlp_run(tmp_path_factory):
     return run_dir
 
 
+@pytest.mark.slow  # resume itself is tested on the JAX envs by default (test_training.py)
 def test_host_run_resumes_from_its_checkpoint(stopped_mlp_run, tmp_path):
     run_dir = tmp_path / "run"
     shutil.copytree(stopped_mlp_run, run_dir)

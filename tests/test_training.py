@@ -108,6 +108,7 @@ def test_full_run_writes_every_artifact(full_run):
     assert best in range(cfg.seeds)
     assert record["jax_eval"]["episodes"] == cfg.eval_episodes
     assert record["evaluated_in"] == "jax"
+    assert record["devices"] == {"count": 1, "platform": "cpu"}
     assert {"mean", "std", "min", "max"} <= set(record["jax_eval"])
     assert record["training"]["env_steps"] == cfg.total_env_steps
     assert record["training"]["iterations"] == cfg.iterations
@@ -176,6 +177,7 @@ def test_export_cli_writes_the_same_policy(full_run, tmp_path, jax_cache):
 # Resume ---------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # the extension test below resumes too, and compares with an unbroken run
 def test_resume_is_bitwise_deterministic(full_run, stopped_run, tmp_path):
     run_dir = tmp_path / "run"
     shutil.copytree(stopped_run, run_dir)
