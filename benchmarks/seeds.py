@@ -11,12 +11,12 @@ Tasks (a meta-RL task family; one seed unless a single ``--seeds`` value is give
 
 What is timed. For each seed count S, ``Trainer(cfg).init_seeds()`` builds S seeds' states
 (sharded over devices as a run shards them, ``Trainer.place``) and ``trainer.compiled_chunk(n)``
-the chunk of ``n = --iterations`` iterations, jit(vmap) over seeds. The chunk is compiled apart
-(``lower(...).compile()``: "compile (s)"), run once to warm up, then ``--repeats`` times; the best
-run gives "s / iteration" (collection + ``updates_per_iteration`` SAC updates, all seeds) and
-"ms / update (all seeds)" (s / iteration divided by updates_per_iteration, so it includes the
-collection's share). "ratio" is s / iteration over that of the first row (one seed, one task):
-S vmapped seeds cost S x one seed when the ratio is S, and are free when it is 1.
+the chunk of ``n = --iterations`` iterations, jit(vmap) over seeds. The chunk runs once (compile
+and run), then ``--repeats`` times; "compile (s)" is the first call less the best later one, and
+the best run gives "s / iteration" (collection + ``updates_per_iteration`` SAC updates, all
+seeds) and "ms / update (all seeds)" (s / iteration divided by updates_per_iteration, so it
+includes the collection's share). "ratio" is s / iteration over that of the first row (one
+seed, one task): S vmapped seeds cost S x one seed when the ratio is S, and are free when it is 1.
 
 Tasks mode varies ``meta_batch``, the number of tasks whose buffers every SGD step samples (RL
 batch and context per task, PEARL's meta batch; ``espl_jax/sac.py``, ``SAC.sample_batch``). It
@@ -68,6 +68,9 @@ def build_config(args: argparse.Namespace, seeds: int, meta_batch: int | None) -
 def time_chunk(cfg: config.Config, iterations: int, repeats: int) -> dict[str, Any]:
     """Compile, warm-up and best-of-``repeats`` times of one chunk of ``iterations``."""
     trainer = Trainer(cfg)
+    # Build the env outside any trace, as run.train does: an MJX env first built inside
+    # init_seeds' jit would keep tracers of its model (cached_property).
+    trainer.env  # noqa: B018
     if trainer.on_host:
         raise SystemExit(f"{cfg.env} is stepped on the host: no compiled chunk to time")
     state = trainer.init_seeds()
@@ -77,15 +80,17 @@ def time_chunk(cfg: config.Config, iterations: int, repeats: int) -> dict[str, A
         state = jax.block_until_ready(run.warmup(trainer, state))
         warmup_s = time.perf_counter() - started
     chunk = trainer.compiled_chunk(iterations)
+    # Compile = the first call less the best steady one: AOT ``lower().compile()`` of a chunk
+    # that captures an MJX model fails when called ("compiled for N inputs but called with M").
     started = time.perf_counter()
-    compiled = chunk.lower(state).compile()
-    compile_s = time.perf_counter() - started
-    state, _ = jax.block_until_ready(compiled(state))  # warm-up run
+    state, _ = jax.block_until_ready(chunk(state))
+    first = time.perf_counter() - started
     best = float("inf")
     for _ in range(repeats):
         started = time.perf_counter()
-        state, _ = jax.block_until_ready(compiled(state))
+        state, _ = jax.block_until_ready(chunk(state))
         best = min(best, time.perf_counter() - started)
+    compile_s = first - best
     per_iteration = best / iterations
     return {
         "env": cfg.env,
