@@ -1,0 +1,105 @@
+"""ESPL's robustness options: the fine-tune phase trains exactly the exported mask, the anchor
+keeps each seed's best formula, and the hall of fame's pick rules."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import TINY
+from flax import struct
+
+from espl_jax import config as config_lib
+from espl_jax import halloffame as hof
+from espl_jax import selector
+from espl_jax.config import UserError
+from espl_jax.trainer import Trainer
+
+
+@pytest.mark.usefixtures("jax_cache")
+def test_finetune_freezes_p_at_the_exported_mask_and_keeps_it_there():
+    cfg = config_lib.from_mapping(
+        {
+            **TINY,
+            "seeds": 1,
+            "iterations": 3,
+            "chunk_iterations": 3,
+            "updates_per_iteration": 5,
+            "schedule_iterations": 1,
+            "finetune": True,
+        }  # fmt: skip
+    )
+    trainer = Trainer(cfg)
+    trainer.env  # noqa: B018
+    state = trainer.init_seeds()
+    before = jax.tree.map(lambda x: x[0], state.actor)
+    # Before t_s the params are untouched; from t_s on p is the 0/1 exported mask.
+    untouched = trainer.freeze_mask(before, jnp.asarray(0))
+    for got, want in zip(jax.tree.leaves(untouched), jax.tree.leaves(before), strict=True):
+        np.testing.assert_array_equal(got, want)
+    frozen = trainer.freeze_mask(before, jnp.asarray(1))
+    expected = selector.deterministic_mask(before["probs"], before["mean"]["w"])
+    for got, want in zip(jax.tree.leaves(frozen["probs"]), jax.tree.leaves(expected), strict=True):
+        np.testing.assert_array_equal(got, want)
+        assert set(np.unique(np.asarray(got))) <= {0.0, 1.0}
+
+    state, _ = trainer.compiled_chunk(3)(state)
+    after = jax.tree.map(lambda x: x[0], state.actor)
+    # Two iterations past t_s: p is still exactly a 0/1 mask (the updates did not move it) and it
+    # is the exported mask of the final params, up to paths whose weight the last updates took
+    # below the export's |w| > 1e-3 (they contribute < 1e-3 to the trained formula).
+    again = selector.deterministic_mask(after["probs"], after["mean"]["w"])
+    leaves = zip(jax.tree.leaves(after["probs"]), jax.tree.leaves(again),
+                 jax.tree.leaves(after["mean"]["w"]), strict=True)  # fmt: skip
+    for got, want, w in leaves:
+        got, want, w = np.asarray(got), np.asarray(want), np.asarray(w)
+        assert set(np.unique(got)) <= {0.0, 1.0}
+        assert np.all(got >= want)  # every exported path is trained
+        assert np.all(np.abs(w[got != want]) <= 1e-3)
+    # ... while the constants were trained.
+    w0, w1 = jax.tree.leaves(before["mean"]), jax.tree.leaves(after["mean"])
+    assert any(not np.array_equal(a, b) for a, b in zip(w0, w1, strict=True))
+
+
+@struct.dataclass
+class _Anchored:
+    actor: dict
+    anchor: dict
+    anchor_return: jax.Array
+    anchor_iteration: jax.Array
+    iteration: jax.Array
+
+
+def test_anchor_keeps_each_seeds_best_formula_from_the_schedules_end_on():
+    state = _Anchored(
+        actor={"w": jnp.asarray([[1.0, 1.0], [2.0, 2.0]])},
+        anchor={"w": jnp.zeros((2, 2))},
+        anchor_return=jnp.asarray([-jnp.inf, -jnp.inf]),
+        anchor_iteration=jnp.asarray([0, 0]),
+        iteration=jnp.asarray([10, 10]),
+    )
+    assert hof.update_anchor(state, jnp.asarray([5.0, 7.0]), eligible=False) is state
+    state = hof.update_anchor(state, jnp.asarray([5.0, 7.0]), eligible=True)
+    np.testing.assert_array_equal(state.anchor["w"], [[1.0, 1.0], [2.0, 2.0]])
+    # Seed 0 improves, seed 1 gets worse: only seed 0's anchor moves.
+    state = state.replace(
+        actor={"w": jnp.asarray([[3.0, 3.0], [4.0, 4.0]])}, iteration=jnp.asarray([20, 20])
+    )
+    state = hof.update_anchor(state, jnp.asarray([6.0, 1.0]), eligible=True)
+    np.testing.assert_array_equal(state.anchor["w"], [[3.0, 3.0], [2.0, 2.0]])
+    np.testing.assert_array_equal(state.anchor_return, [6.0, 7.0])
+    np.testing.assert_array_equal(state.anchor_iteration, [20, 10])
+
+
+def _row(iteration, selection_return, length):
+    return {"iteration": iteration, "seed": 0, "selection_return": selection_return,
+            "length": length, "formula": f"a0 = f{iteration}", "protected": ["x"]}  # fmt: skip
+
+
+def test_pick_best_and_shortest_within():
+    rows = [_row(1, 900.0, 40), _row(2, 1000.0, 30), _row(3, 960.0, 8), _row(4, 1000.0, 25),
+            {**_row(5, 2000.0, 1e6), "formula": None, "protected": None}]  # fmt: skip
+    assert hof.pick(rows, "best")["iteration"] == 4  # ties: the shorter; unpruned rows never
+    assert hof.pick(rows, "shortest-within", 5.0)["iteration"] == 3  # 960 is within 5 % of 1000
+    assert hof.pick(rows, "shortest-within", 1.0)["iteration"] == 4
+    with pytest.raises(UserError):
+        hof.pick([rows[-1]], "best")
