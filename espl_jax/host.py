@@ -52,6 +52,16 @@ def reset_seeds(state_keys: jax.Array) -> list[int]:
     return env_seeds(jax.vmap(jax.random.fold_in, (0, None))(state_keys, RESET_SALT))
 
 
+def host_chunk(iteration, state: TrainState, length: int) -> tuple[TrainState, Metrics]:
+    """``length`` host-stepped iterations; metrics stacked to [S, length] like a compiled
+    chunk's (``Trainer.compiled_chunk``)."""
+    rows = []
+    for _ in range(length):
+        state, metrics = iteration(state)
+        rows.append(jax.device_get(metrics))
+    return state, jax.tree.map(lambda *xs: np.stack(xs, axis=1), *rows)
+
+
 class HostCollector:
     """Steps one gymnasium env per seed on the host; policy and updates stay jitted.
 
@@ -171,12 +181,7 @@ class HostCollector:
         )
 
     def chunk(self, state: TrainState, length: int) -> tuple[TrainState, Metrics]:
-        """``length`` iterations; metrics stacked to [S, length] like a compiled chunk's."""
-        rows = []
-        for _ in range(length):
-            state, metrics = self.iteration(state)
-            rows.append(jax.device_get(metrics))
-        return state, jax.tree.map(lambda *xs: np.stack(xs, axis=1), *rows)
+        return host_chunk(self.iteration, state, length)
 
 
 class HostEvaluator:

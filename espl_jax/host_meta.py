@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from espl_jax import replay, rollout
-from espl_jax.host import env_seeds
+from espl_jax.host import env_seeds, host_chunk
 from espl_jax.replay import Transition
 from espl_jax.rollout import Adapted
 from espl_jax.sac import Metrics, TrainState
@@ -197,11 +197,7 @@ class HostMetaCollector:
         return self._learn(state, np.concatenate(dones, 1), np.concatenate(finished, 1), k_update)
 
     def chunk(self, state: TrainState, length: int) -> tuple[TrainState, Metrics]:
-        rows = []
-        for _ in range(length):
-            state, metrics = self.iteration(state)
-            rows.append(jax.device_get(metrics))
-        return state, jax.tree.map(lambda *xs: np.stack(xs, axis=1), *rows)
+        return host_chunk(self.iteration, state, length)
 
 
 def _split3(keys: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:

@@ -90,15 +90,7 @@ def finish(
             }
         )
     result: dict[str, Any] = {
-        "env": cfg.env,
-        "actor": cfg.actor,
-        "best_seed": best,
-        "training": {
-            "episodes": int(state.episodes[best]),
-            "env_steps": int(state.env_steps[best]),
-            "iterations": int(state.iteration[best]),
-            "wall_seconds_training": round(train_seconds, 1),
-        },
+        **run_lib.result_header(trainer, state, best, train_seconds),
         "protocol": {
             "runs_per_task": cfg.eval_runs,
             "steps_per_run": cfg.eval_steps,
@@ -108,7 +100,6 @@ def finish(
         "test": {"mean": float(test_returns[best].mean()), "per_task": per_task},
         "train": {"mean": float(train_returns[best].mean()), "tasks": n},
         "evaluated_in": "gymnasium" if trainer.on_host else "jax",
-        "devices": trainer.device_info,
         "per_seed": [
             {
                 "seed": s,

@@ -353,17 +353,8 @@ def finish(
         per_seed.append(entry)
 
     result: dict[str, Any] = {
-        "env": cfg.env,
-        "actor": cfg.actor,
-        "best_seed": best,
-        "training": {
-            "episodes": int(state.episodes[best]),
-            "env_steps": int(state.env_steps[best]),
-            "iterations": int(state.iteration[best]),
-            "wall_seconds_training": round(train_seconds, 1),
-        },
+        **result_header(trainer, state, best, train_seconds),
         "jax_eval": per_seed[best]["jax_eval"],
-        "devices": trainer.device_info,
         # where "jax_eval" ran: JAX envs in JAX, host (Box2D) envs in gymnasium
         "evaluated_in": "gymnasium" if trainer.on_host else "jax",
         "per_seed": per_seed,
@@ -408,6 +399,24 @@ def _write_eval(run_dir: Path, result: dict[str, Any], warnings: list[str]) -> N
     if warnings:
         result["warnings"] = list(warnings)
     write_json(run_dir / EVAL_FILE, result)
+
+
+def result_header(
+    trainer: Trainer, state: TrainState, best: int, train_seconds: float
+) -> dict[str, Any]:
+    """What every eval.json starts with: the run, its chosen seed, its budget, its devices."""
+    return {
+        "env": trainer.config.env,
+        "actor": trainer.config.actor,
+        "best_seed": best,
+        "training": {
+            "episodes": int(state.episodes[best]),
+            "env_steps": int(state.env_steps[best]),
+            "iterations": int(state.iteration[best]),
+            "wall_seconds_training": round(train_seconds, 1),
+        },
+        "devices": trainer.device_info,
+    }
 
 
 def write_json(path: Path, record: dict[str, Any]) -> None:
