@@ -82,7 +82,8 @@ class Config:
     schedule_iterations: int = 80  # t_s
     target_temperature: float = 0.2  # τ_t
 
-    # After the schedule (ESPL; not in the paper, see the README's robustness section):
+    # After the schedule (ESPL; not in the paper; off by default, measured in the README, "Across
+    # seeds"):
     # finetune: from iteration t_s on, p is set to the exported mask (p > 0.5, |w| > 1e-3, as
     # 0/1) and frozen, so collection, the critic's target and the actor loss all use exactly the
     # formula that is exported, and the constants (and F, the critics) are fine-tuned on it
