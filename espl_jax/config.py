@@ -65,10 +65,6 @@ class Config:
     # ρ of the AR(1) exploration noise in collection (trainer.collect); 0 is SAC's white noise.
     exploration_correlation: float = 0.0
     polyak: float = 0.005
-    # Critic targets from n-step returns (1: SAC's one-step target, the paper's). n > 1 sums up to
-    # n rewards of the same episode before bootstrapping (replay.sample_n_step): the value of
-    # surviving propagates n times faster per target-network refresh. Not in the paper.
-    n_step: int = 1
     reward_scale: float = 1.0
     grad_clip: float = 0.5  # global-norm clip of the policy gradient (authors' code)
     critic_hidden: tuple[int, ...] = (256, 256)
@@ -165,7 +161,6 @@ _CHOICES = {
 }
 _POSITIVE_INT = (
     "seeds",
-    "n_step",
     "iterations",
     "steps_per_iteration",
     "updates_per_iteration",

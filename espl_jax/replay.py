@@ -86,50 +86,6 @@ def sample(buffer: ReplayBuffer, tasks: jax.Array, keys: jax.Array, n: int) -> T
     return jax.vmap(one)(tasks, keys)
 
 
-def sample_n_step(
-    buffer: ReplayBuffer, tasks: jax.Array, keys: jax.Array, n: int, steps: int, gamma: float
-) -> tuple[Transition, jax.Array]:
-    """Like ``sample``, but each transition is an up-to-``steps``-step one: from a uniformly drawn
-    start, the rewards of the entries that follow it in the same episode are summed with
-    discounts γ^k, ``next_obs`` and ``terminated`` are the last used entry's, and the returned
-    discount [B, n] is γ^m for the m ≤ ``steps`` entries used (the critic's target is then
-    Σ γ^k r_k + γ^m (1 − terminated) V(s_m), the n-step return; the intermediate entropy terms
-    are left out, as is usual for n-step SAC).
-
-    An entry continues the previous one when it was written after it, the previous one did not
-    terminate, and its ``obs`` is exactly the previous ``next_obs``: a reset (termination,
-    truncation, a new collection phase) always breaks that equality, so no episode flags are
-    stored. Starts near the newest entry use fewer steps.
-    """
-    offsets = jnp.arange(steps)
-
-    def one(task, key):
-        size, head, capacity = buffer.size[task], buffer.position[task], buffer.capacity
-        idx = jax.random.randint(key, (n,), 0, jnp.maximum(size, 1))
-        rows = (idx[:, None] + offsets) % capacity  # [n, steps]
-        d = jax.tree.map(lambda x: x[task, rows], buffer.data)
-        newer = (head - 1 - idx) % capacity  # entries written after idx
-        follows = (
-            jnp.all(d.obs[:, 1:] == d.next_obs[:, :-1], axis=-1)
-            & ~d.terminated[:, :-1]
-            & (offsets[1:] <= newer[:, None])
-        )
-        used = jnp.cumprod(jnp.concatenate([jnp.ones((n, 1), bool), follows], axis=1), axis=1)
-        used = used.astype(d.reward.dtype)  # [n, steps], 1 then 0 once the chain breaks
-        last = jnp.sum(used, axis=1).astype(jnp.int32) - 1
-        pick = jnp.arange(n)
-        batch = Transition(
-            obs=d.obs[:, 0],
-            action=d.action[:, 0],
-            reward=jnp.sum(used * gamma**offsets * d.reward, axis=1),
-            next_obs=d.next_obs[pick, last],
-            terminated=d.terminated[pick, last],
-        )
-        return batch, gamma ** (last + 1).astype(d.reward.dtype)
-
-    return jax.vmap(one)(tasks, keys)
-
-
 def capacity_for(requested: int, chunk: int) -> int:
     """Smallest multiple of ``chunk`` that holds ``requested`` transitions."""
     return -(-requested // chunk) * chunk

@@ -157,29 +157,20 @@ class SAC:
 
     def sample_batch(
         self, state: TrainState, key: jax.Array
-    ) -> tuple[replay.Transition, replay.Transition | None, jax.Array | None]:
-        """(RL batch [tasks, B, ...], context [tasks, C, ...] or None, the RL batch's bootstrap
-        discounts [tasks, B] for ``n_step`` > 1 or None: γ) for one update."""
+    ) -> tuple[replay.Transition, replay.Transition | None]:
+        """(RL batch [tasks, B, ...], context [tasks, C, ...] or None) for one update."""
         cfg = self.config
         if not self.meta:
-            tasks, keys = jnp.zeros((1,), jnp.int32), task_keys(key, 1)
-        else:
-            k_tasks, k_rl, k_context = jax.random.split(key, 3)
-            n = cfg.meta_batch
-            tasks = jax.random.randint(k_tasks, (n,), 0, self.num_tasks)  # with replacement
-            keys = jax.random.split(k_rl, n)
-        if cfg.n_step > 1:
-            batch, discount = replay.sample_n_step(
-                state.buffer, tasks, keys, cfg.batch_size, cfg.n_step, cfg.gamma
-            )
-        else:
-            batch, discount = replay.sample(state.buffer, tasks, keys, cfg.batch_size), None
-        if not self.meta:
-            return batch, None, discount
+            tasks = jnp.zeros((1,), jnp.int32)
+            return replay.sample(state.buffer, tasks, task_keys(key, 1), cfg.batch_size), None
+        k_tasks, k_rl, k_context = jax.random.split(key, 3)
+        n = cfg.meta_batch
+        tasks = jax.random.randint(k_tasks, (n,), 0, self.num_tasks)  # with replacement (PEARL)
+        batch = replay.sample(state.buffer, tasks, jax.random.split(k_rl, n), cfg.batch_size)
         context = replay.sample(
             state.encoder_buffer, tasks, jax.random.split(k_context, n), cfg.context_batch
         )
-        return batch, context, discount
+        return batch, context
 
     def latents(
         self, encoder: Any, context: replay.Transition | None, key: jax.Array, tasks: int
@@ -202,17 +193,15 @@ class SAC:
         batch: replay.Transition,
         context: replay.Transition | None,
         key: jax.Array,
-        discount: jax.Array | None = None,
     ) -> tuple[jax.Array, tuple[Metrics, jax.Array]]:
-        """mean over tasks of Σ_i mean_batch (Q_i(s, a, z) − y)² + β Σ_tasks KL (Algorithm 2).
-        ``discount`` [tasks, B]: the n-step batch's γ^m per transition (None: γ)."""
+        """mean over tasks of Σ_i mean_batch (Q_i(s, a, z) − y)² + β Σ_tasks KL (Algorithm 2)."""
         actor, cfg = self.actor, self.config
         tasks, size = batch.reward.shape[:2]
         k_mask, k_act = jax.random.split(key)
         z, kl = self.latents(encoder, context, jax.random.fold_in(key, 1), tasks)
         alpha = jnp.exp(state.log_alpha)
 
-        def per_task(b, z_t, k_mask_t, k_act_t, discount_t):
+        def per_task(b, z_t, k_mask_t, k_act_t):
             policy = actor.at(state.actor, jax.lax.stop_gradient(z_t))
             mask = actor.collect_mask(k_mask_t, policy)
             keys = jax.random.split(k_act_t, size)
@@ -221,15 +210,12 @@ class SAC:
             )
             next_q = self.critic.apply(state.target_critic, b.next_obs, next_action, z_t).min(-1)
             soft_next = next_q - alpha * next_log_prob
-            gamma = cfg.gamma if discount_t is None else discount_t
-            target = cfg.reward_scale * b.reward + gamma * (1.0 - b.terminated) * soft_next
+            target = cfg.reward_scale * b.reward + cfg.gamma * (1.0 - b.terminated) * soft_next
             q = self.critic.apply(critic, b.obs, b.action, z_t)
             loss = jnp.sum(jnp.mean((q - jax.lax.stop_gradient(target)[:, None]) ** 2, axis=0))
             return loss, jnp.mean(q)
 
-        losses, qs = jax.vmap(per_task)(
-            batch, z, task_keys(k_mask, tasks), task_keys(k_act, tasks), discount
-        )
+        losses, qs = jax.vmap(per_task)(batch, z, task_keys(k_mask, tasks), task_keys(k_act, tasks))
         critic_loss = jnp.mean(losses)
         loss = critic_loss + cfg.kl_weight * kl if self.meta else critic_loss
         metrics = {"critic_loss": critic_loss, "q": jnp.mean(qs)}
@@ -296,11 +282,11 @@ class SAC:
         """One SAC step: critic (and encoder), actor, α, then Polyak. ``frozen`` (ESPL's
         fine-tune phase) keeps the path probabilities where they are."""
         k_batch, k_critic, k_actor = jax.random.split(key, 3)
-        batch, context, discount = self.sample_batch(state, k_batch)
+        batch, context = self.sample_batch(state, k_batch)
 
         (_, (c_metrics, z)), (c_grads, e_grads) = jax.value_and_grad(
             self.critic_loss, argnums=(0, 1), has_aux=True
-        )(state.critic, state.encoder, state, batch, context, k_critic, discount)
+        )(state.critic, state.encoder, state, batch, context, k_critic)
         c_updates, critic_opt = self.critic_tx.update(c_grads, state.critic_opt, state.critic)
         critic = optax.apply_updates(state.critic, c_updates)
         state = state.replace(critic=critic, critic_opt=critic_opt)

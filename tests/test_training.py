@@ -568,69 +568,6 @@ def test_replay_insert_wraps_and_size_saturates():
     assert replay.capacity_for(10, 4) == 12 and replay.capacity_for(8, 4) == 8
 
 
-def _n_step_reference(entries, start, steps, gamma, newest):
-    """The n-step transition from entry ``start`` of ``entries`` (obs, reward, next_obs,
-    terminated) in ring order, written as plainly as possible."""
-    total, k, i = 0.0, 0, start
-    while True:
-        obs, reward, next_obs, terminated = entries[i]
-        total += gamma**k * reward
-        k += 1
-        j = (i + 1) % len(entries)
-        if k == steps or terminated or i == newest or entries[j][0] != next_obs:
-            return total, next_obs, terminated, gamma**k
-        i = j
-
-
-@pytest.mark.parametrize("inserted", [7, 10])  # not yet full / wrapped past the oldest entries
-def test_n_step_sample_sums_rewards_within_an_episode_only(inserted):
-    """Episodes of a 1-D chain (obs → obs + 1), broken by a termination, by a reset after a
-    truncation (obs jumps) and by the newest entry; every drawn n-step transition equals the
-    plain reference above, and n_step 1 is the one-step sample."""
-    gamma, steps, capacity = 0.9, 3, 8
-    # (obs, reward, next_obs, terminated): 0 1 (then a reset), 25 (terminates), 10 11
-    # (truncated), 20 … 24. Wrapped, the oldest entry (obs 25) has the obs that follows the newest
-    # (next_obs 25): only the write position tells that they are not one episode.
-    chain = [(0, 1, 1, 0), (1, 2, 2, 0), (25, 3, 26, 1), (10, 4, 11, 0), (11, 5, 12, 0),
-             (20, 6, 21, 0), (21, 7, 22, 0), (22, 8, 23, 0), (23, 9, 24, 0),
-             (24, 10, 25, 0)]  # fmt: skip
-    chain = chain[:inserted]
-    buffer = replay.init(tasks=1, capacity=capacity, obs_dim=1, action_dim=1)
-    task = jnp.zeros(1, jnp.int32)
-    for obs, reward, next_obs, terminated in chain:
-        t = replay.Transition(
-            jnp.array([[[obs]]], jnp.float32), jnp.zeros((1, 1, 1)),
-            jnp.array([[reward]], jnp.float32), jnp.array([[[next_obs]]], jnp.float32),
-            jnp.array([[bool(terminated)]]),
-        )  # fmt: skip
-        buffer = replay.insert(buffer, task, t)
-    ring = [None] * capacity  # the buffer's rows, as a ring: entry k goes to row k % capacity
-    for k, entry in enumerate(chain):
-        ring[k % capacity] = entry
-    ring = ring[: min(len(chain), capacity)]
-    newest = (int(buffer.position[0]) - 1) % capacity
-    batch, discount = replay.sample_n_step(
-        buffer, task, jax.random.PRNGKey(0)[None], 512, steps, gamma
-    )
-    starts = set()
-    for b in range(512):
-        obs = float(batch.obs[0, b, 0])
-        start = next(i for i, e in enumerate(ring) if e[0] == obs)
-        starts.add(start)
-        total, next_obs, terminated, disc = _n_step_reference(ring, start, steps, gamma, newest)
-        assert float(batch.reward[0, b]) == pytest.approx(total, rel=1e-6)
-        assert float(batch.next_obs[0, b, 0]) == next_obs
-        assert bool(batch.terminated[0, b]) == bool(terminated)
-        assert float(discount[0, b]) == pytest.approx(disc, rel=1e-6)
-    assert starts == set(range(len(ring)))  # every valid entry was drawn as a start
-    one, one_discount = replay.sample_n_step(
-        buffer, task, jax.random.PRNGKey(1)[None], 64, 1, gamma
-    )
-    plain = replay.sample(buffer, task, jax.random.PRNGKey(1)[None], 64)
-    assert_trees_equal(one, plain)
-    np.testing.assert_allclose(one_discount, gamma)
-
-
 def test_tanh_gaussian_log_prob_matches_numpy():
     rng = np.random.default_rng(0)
     u = rng.uniform(-3, 3, size=(50, 3))
