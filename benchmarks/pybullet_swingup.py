@@ -31,7 +31,6 @@ import importlib.util
 import json
 from pathlib import Path
 
-import gym.envs.registration as registration
 import numpy as np
 
 
@@ -39,10 +38,22 @@ class _Registry(dict):
     """gym 0.26's registry is a dict; ``pybullet_envs`` asks for ``registry.env_specs``."""
 
 
-registration.registry = _Registry(registration.registry)
-registration.registry.env_specs = registration.registry
+def make_env():
+    """PyBullet's swing-up env. Imported here, after argument parsing, so that ``--help`` works
+    without PyBullet (it lives in a venv of its own, see the module docstring)."""
+    try:
+        import gym.envs.registration as registration
+    except ImportError:
+        raise SystemExit(
+            "error: this script needs PyBullet and gym in a venv of their own: python3 -m venv "
+            "/tmp/pb && /tmp/pb/bin/pip install pybullet==3.2.7 gym==0.26.2 numpy"
+        ) from None
+    registration.registry = _Registry(registration.registry)
+    registration.registry.env_specs = registration.registry
+    from pybullet_envs.gym_pendulum_envs import InvertedPendulumSwingupBulletEnv
 
-from pybullet_envs.gym_pendulum_envs import InvertedPendulumSwingupBulletEnv  # noqa: E402
+    return InvertedPendulumSwingupBulletEnv()
+
 
 STEPS = 200
 EPISODES = 20
@@ -138,7 +149,7 @@ def main():
     ev.add_argument("policy", help="path of an exported policy.py")
     ev.add_argument("--episodes", type=int, default=100)
     args = parser.parse_args()
-    env = InvertedPendulumSwingupBulletEnv()
+    env = make_env()
     if args.command == "record":
         record(env)
     else:
