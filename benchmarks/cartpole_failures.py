@@ -4,9 +4,9 @@
     python benchmarks/cartpole_failures.py RUN_DIR [--episodes 20]
 
 Plays the network under the eval mask (the exported formula's mask; all paths for an unpruned
-network), deterministic actions tanh(μ), in the JAX env with its default params, and prints per
-seed the mean episode length and how many episodes each condition ended. Used for the cartpole
-diagnosis in the README ("Across seeds"). Not part of the test suite.
+network) with deterministic actions (``Actor.deterministic``) in the JAX env with its default
+params, and prints per seed the mean episode length and how many episodes each condition ended.
+Used for the cartpole diagnosis in the README ("Across seeds"). Not part of the test suite.
 """
 
 import argparse
@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from espl_jax import run
+from espl_jax import rollout, run
 
 
 def main() -> None:
@@ -33,11 +33,11 @@ def main() -> None:
         def episode(key, policy=policy, mask=mask):
             def body(carry, _):
                 obs, st, done, length = carry
-                mean, _, _ = actor.mean_and_log_std(policy, mask, obs)
-                obs2, st2, _, term, trunc, _ = env.step(key, st, jnp.tanh(mean), params)
-                keep = lambda old, new: jnp.where(done, old, new)  # noqa: E731
-                st = jax.tree.map(keep, st, st2)
-                return (keep(obs, obs2), st, done | term | trunc, length + ~done), None
+                action = actor.deterministic(policy, mask, obs)
+                obs2, st2, _, term, trunc, _ = env.step(key, st, action, params)
+                # Freeze the episode at its end, so the final obs says why it ended.
+                obs, st = rollout.where(done, (obs, st), (obs2, st2))
+                return (obs, st, done | term | trunc, length + ~done), None
 
             obs, st = env.reset(key, params)
             start = (obs, st, jnp.array(False), jnp.array(0))

@@ -367,7 +367,7 @@ def test_extending_a_finished_run_equals_a_run_planned_that_long(tmp_path):
     _extended_equals_planned(config, finished, tmp_path)
 
 
-@pytest.mark.slow  # two more symbolic iterations and a 6-iteration run: ~2 min
+@pytest.mark.slow  # two more symbolic iterations and a 6-iteration run: 2–5 min
 def test_extending_a_finished_symbolic_run_equals_a_run_planned_that_long(full_run, tmp_path):
     _extended_equals_planned(tiny(), full_run[0], tmp_path)
 
