@@ -29,7 +29,7 @@ from espl_jax import expression as ex
 from espl_jax import run as run_lib
 from espl_jax.sac import TrainState
 from espl_jax.symbolic import live_paths
-from espl_jax.trainer import Trainer
+from espl_jax.trainer import Trainer, gather
 
 TASKS_FILE = "tasks.json"
 TEST_TASKS_DIR = "test_tasks"
@@ -67,11 +67,11 @@ def finish(
     write_tasks(trainer, run_dir)
 
     keys = jax.vmap(jax.random.fold_in, (0, None))
-    test = jax.device_get(run_lib.adapter(trainer, test_params)(state, keys(state.key, 3)))
+    test = gather(run_lib.adapter(trainer, test_params)(state, keys(state.key, 3)))
     # PEARL also evaluates on as many training tasks as there are test tasks.
     n = min(family.n_test, family.n_train)
     subset = jax.tree.map(lambda x: x[:n], train_params)
-    train = jax.device_get(run_lib.adapter(trainer, subset)(state, keys(state.key, 2)))
+    train = gather(run_lib.adapter(trainer, subset)(state, keys(state.key, 2)))
     test_returns = np.asarray(test.final_return)  # [S, tasks, runs]
     train_returns = np.asarray(train.final_return)
     best = int(np.argmax(train_returns.mean(axis=(1, 2)))) if cfg.seeds > 1 else 0

@@ -23,6 +23,7 @@ import json
 import math
 import os
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -38,7 +39,7 @@ from espl_jax import expression as ex
 from espl_jax import halloffame as hof
 from espl_jax.config import Config, UserError
 from espl_jax.sac import TrainState
-from espl_jax.trainer import Trainer
+from espl_jax.trainer import Trainer, gather
 
 CHECKPOINT_DIR = "checkpoints"
 METRICS_FILE = "metrics.jsonl"
@@ -121,6 +122,13 @@ def train(
     # Fail fast on an unknown env or too many devices, before anything is written.
     trainer.env  # noqa: B018
     trainer.mesh  # noqa: B018
+    # Multi-process runs (--distributed): every process computes, all write the checkpoints
+    # (each its own seeds' shards; orbax coordinates), and only process 0 writes the other files
+    # of the run directory; the others write theirs to a scratch directory.
+    primary = jax.process_index() == 0
+    if jax.process_count() > 1 and trainer.on_host:
+        raise UserError(f"{config.env} is stepped in gymnasium on the host: it runs in one process")
+    out = run_dir if primary else Path(tempfile.mkdtemp(prefix=f"espl-{jax.process_index()}-"))
     if resume:
         start, state = restore(run_dir, trainer)
         if start > config.iterations:
@@ -128,20 +136,21 @@ def train(
                 f"{run_dir} has already trained {start} iterations; --iterations must be at "
                 f"least {start} to resume it"
             )
-        _truncate_metrics(run_dir / METRICS_FILE, start)
-        _truncate_metrics(run_dir / hof.FORMULAS_FILE, start)
+        _truncate_metrics(out / METRICS_FILE, start)
+        _truncate_metrics(out / hof.FORMULAS_FILE, start)
         # Written after the checkpoint proved readable; a kill in between is harmless (the next
         # resume re-reads the checkpoint and fits its buffer again).
-        if config_lib.load(run_dir / "config.yaml") != config:
+        if primary and config_lib.load(run_dir / "config.yaml") != config:
             _write_atomic(run_dir / "config.yaml", config_lib.dump(config))
     else:
         if (run_dir / CHECKPOINT_DIR).exists():
             raise UserError(f"{run_dir} already holds a run; use --resume {run_dir} or a new --out")
+        _barrier("run directory checked")  # before any process creates checkpoints/
         run_dir.mkdir(parents=True, exist_ok=True)
-        _write_atomic(run_dir / "config.yaml", config_lib.dump(config))
-        (run_dir / METRICS_FILE).write_text("")
+        _write_atomic(out / "config.yaml", config_lib.dump(config))
+        (out / METRICS_FILE).write_text("")
         if keeps_hall_of_fame(trainer):
-            (run_dir / hof.FORMULAS_FILE).write_text("")
+            (out / hof.FORMULAS_FILE).write_text("")
         state = trainer.init_seeds()
         start = 0
 
@@ -157,35 +166,35 @@ def train(
         initial=start,
         desc=f"{config.env} ({config.seeds} seed{'s' if config.seeds > 1 else ''})",
         unit="it",
-        disable=not show_progress,
+        disable=not show_progress or not primary,
     )
     with checkpoint.manager(run_dir / CHECKPOINT_DIR) as mngr, close:
         iteration = start
         while iteration < end:
             length = min(config.chunk_iterations, end - iteration)
             new_state, metrics = run_chunk(state, length)
-            metrics = jax.device_get(metrics)
+            metrics = gather(metrics)
             diverged = _non_finite(metrics, iteration)
             if diverged:
                 # Keep the failing chunk's rows, so the user can see what diverged and how.
-                _append_metrics(run_dir / METRICS_FILE, metrics, None)
+                _append_metrics(out / METRICS_FILE, metrics, None)
                 raise TrainingDiverged(diverged + "; " + _kept(run_dir, mngr.latest_step()))
             eval_keys = jax.vmap(jax.random.fold_in, (0, None))(new_state.key, 1)
-            eval_returns = np.asarray(progress_eval(new_state, eval_keys))
-            _append_metrics(run_dir / METRICS_FILE, metrics, eval_returns)
+            eval_returns = gather(progress_eval(new_state, eval_keys))
+            _append_metrics(out / METRICS_FILE, metrics, eval_returns)
             state = new_state
             iteration += length
             if keeps_hall_of_fame(trainer):
-                state = record_hall_of_fame(trainer, state, eval_returns, iteration, run_dir)
+                state = record_hall_of_fame(trainer, state, eval_returns, iteration, out)
             checkpoint.save(mngr, iteration, state)
             warn_on_failure(
                 warnings, "learning-curve plot", plot_learning_curve,
-                run_dir / METRICS_FILE, run_dir / CURVE_FILE, config.env,
+                out / METRICS_FILE, out / CURVE_FILE, config.env,
             )  # fmt: skip
             if keeps_hall_of_fame(trainer):
                 warn_on_failure(
                     warnings, "hall-of-fame plot", hof.plot,
-                    run_dir / hof.FORMULAS_FILE, run_dir / hof.PLOT_FILE, config.env,
+                    out / hof.FORMULAS_FILE, out / hof.PLOT_FILE, config.env,
                 )  # fmt: skip
             bar.update(length)
             bar.set_postfix(
@@ -196,7 +205,15 @@ def train(
     train_seconds = time.perf_counter() - started
     if iteration < config.iterations:
         return {}
-    return finish(trainer, state, run_dir, train_seconds, warnings)
+    return finish(trainer, state, out, train_seconds, warnings)
+
+
+def _barrier(name: str) -> None:
+    """Wait for every process of a multi-process run to get here (no-op in one process)."""
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        multihost_utils.sync_global_devices(name)
 
 
 def keeps_hall_of_fame(trainer: Trainer) -> bool:
@@ -211,8 +228,8 @@ def record_hall_of_fame(
     returns = eval_returns.mean(axis=1)
     eligible = iteration >= trainer.config.schedule_iterations
     state = jax.jit(hof.update_anchor, static_argnums=2)(state, jnp.asarray(returns), eligible)
-    env_steps = np.asarray(state.env_steps)
-    rows = hof.seed_rows(trainer, state.actor, returns, iteration=iteration, eligible=eligible)
+    env_steps, actors = gather((state.env_steps, state.actor))
+    rows = hof.seed_rows(trainer, actors, returns, iteration=iteration, eligible=eligible)
     for r in rows:
         r["env_steps"] = int(env_steps[r["seed"]])
     hof.append(run_dir / hof.FORMULAS_FILE, rows)
@@ -273,9 +290,9 @@ def progress_evaluator(trainer: Trainer):
     protocol on every test task (the last trajectory's return, averaged over runs)."""
     if trainer.meta:
         adapt = adapter(trainer, trainer.tasks[1])
-        return lambda state, keys: np.asarray(adapt(state, keys).final_return).mean(axis=-1)
+        return lambda state, keys: gather(adapt(state, keys).final_return).mean(axis=-1)
     evaluate = evaluator(trainer, trainer.config.progress_eval_episodes)
-    return lambda state, keys: evaluate(state.actor, keys)
+    return lambda state, keys: gather(evaluate(state.actor, keys))
 
 
 def warmup(trainer: Trainer, state: TrainState) -> TrainState:
@@ -320,6 +337,9 @@ def finish(
     evaluation (policy.py in gymnasium), so a failure there — or a kill — loses nothing: it
     becomes a warning in the output and in eval.json.
     """
+    # Every seed on every process, as numpy (the replay buffers stay behind); the jitted
+    # evaluations below take numpy input and shard it over the devices again.
+    state = gather(state.replace(buffer=None, encoder_buffer=None))
     if trainer.meta:
         from espl_jax import meta
 
@@ -331,11 +351,11 @@ def finish(
     # Select on one set of episodes, report on a fresh one, so the reported figure is unbiased.
     # A single seed needs no selection (for MJX envs it would double the final evaluation).
     report_keys = jax.vmap(jax.random.fold_in, (0, None))(state.key, 3)
-    report = np.asarray(evaluate(actors, report_keys))
+    report = gather(evaluate(actors, report_keys))
     best = 0
     if cfg.seeds > 1:
         select_keys = jax.vmap(jax.random.fold_in, (0, None))(state.key, 2)
-        selection = np.asarray(evaluate(actors, select_keys))
+        selection = gather(evaluate(actors, select_keys))
         best = int(np.argmax(selection.mean(axis=1)))
 
     per_seed = []
@@ -391,7 +411,7 @@ def exported_actors(trainer: Trainer, state: TrainState) -> tuple[Any, list[str]
     def pick(anchor, final):
         return np.where(has_anchor.reshape(-1, *([1] * (anchor.ndim - 1))), anchor, final)
 
-    actors = jax.tree.map(pick, jax.device_get(state.anchor), jax.device_get(state.actor))
+    actors = jax.tree.map(pick, gather(state.anchor), gather(state.actor))
     return actors, ["best" if a else "final" for a in has_anchor]
 
 

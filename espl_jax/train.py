@@ -53,8 +53,12 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--distributed",
         action="store_true",
-        help="call jax.distributed.initialize() first (multi-host runs; see the README)",
+        help="run as one process of a multi-host run: call jax.distributed.initialize() first "
+        "(see the README); without the three flags below JAX detects them (SLURM, Open MPI, ...)",
     )
+    p.add_argument("--coordinator", metavar="HOST:PORT", help="process 0's address (--distributed)")
+    p.add_argument("--num-processes", type=int, help="processes in the run (--distributed)")
+    p.add_argument("--process-id", type=int, help="this process's index (--distributed)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -66,9 +70,11 @@ RUN_DEFINING_FLAGS = ("env", "seeds", "config", "actor", "seed", "out")
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     if args.distributed:
-        import jax
-
-        jax.distributed.initialize()  # coordinator, process count and id from the environment
+        if not (args.out or args.resume):
+            raise UserError("--distributed needs --out (or --resume): one run directory for all")
+        start_distributed(args)
+    elif any(x is not None for x in (args.coordinator, args.num_processes, args.process_id)):
+        raise UserError("--coordinator, --num-processes and --process-id need --distributed")
     if args.resume:
         given = [f"--{name}" for name in RUN_DEFINING_FLAGS if getattr(args, name) is not None]
         if given:
@@ -106,6 +112,24 @@ def main(argv: list[str] | None = None) -> int:
         f"trained on {t['episodes']} episodes / {t['env_steps']} env steps; wall time {wall:.0f} s"
     )
     return 0
+
+
+def start_distributed(args: argparse.Namespace) -> None:
+    """Join the run's process group (``jax.distributed.initialize``): every process then sees
+    every host's devices in ``jax.devices()``, and the seed axis is sharded across all of them."""
+    import jax
+
+    given = {
+        "coordinator_address": args.coordinator,
+        "num_processes": args.num_processes,
+        "process_id": args.process_id,
+    }
+    if any(v is not None for v in given.values()) and any(v is None for v in given.values()):
+        raise UserError("--coordinator, --num-processes and --process-id go together")
+    try:
+        jax.distributed.initialize(**{k: v for k, v in given.items() if v is not None})
+    except (ValueError, RuntimeError) as err:
+        raise UserError(f"--distributed: could not join the process group ({err})") from None
 
 
 def print_single_task(result: dict) -> None:

@@ -54,6 +54,26 @@ def make_env(name: str):
         raise UserError(str(err)) from None
 
 
+def gather(tree: Any) -> Any:
+    """Numpy copies of a pytree's arrays, every seed on every process.
+
+    In a multi-process run (``--distributed``) an array sharded over other hosts' devices is
+    all-gathered first; that is a collective, so every process must call this at the same point.
+    In one process it is ``jax.device_get``.
+    """
+    leaves, treedef = jax.tree.flatten(tree)
+    remote = [
+        i for i, x in enumerate(leaves) if isinstance(x, jax.Array) and not x.is_fully_addressable
+    ]
+    if remote:
+        from jax.experimental import multihost_utils
+
+        gathered = multihost_utils.process_allgather([leaves[i] for i in remote], tiled=True)
+        for i, value in zip(remote, gathered, strict=True):
+            leaves[i] = value
+    return jax.tree.unflatten(treedef, [np.asarray(x) for x in jax.device_get(leaves)])
+
+
 def _stack(params: Any) -> Any:
     """A batch of one task: every leaf gets a leading axis of 1."""
     return jax.tree.map(lambda x: np.asarray(x)[None], params)
@@ -253,7 +273,10 @@ class Trainer:
     @property
     def device_info(self) -> dict[str, Any]:
         devices = self.mesh.devices.ravel() if self.mesh is not None else jax.devices()[:1]
-        return {"count": len(devices), "platform": devices[0].platform}
+        info = {"count": len(devices), "platform": devices[0].platform}
+        if jax.process_count() > 1:  # a --distributed run: the devices span these processes
+            info["processes"] = len({d.process_index for d in devices})
+        return info
 
     # Collection -----------------------------------------------------------------------------
 
