@@ -91,7 +91,8 @@ def budget(config) -> dict:
         "iterations", "updates_per_iteration", "batch_size", "meta_batch", "initial_steps",
         "tasks_per_iteration", "prior_steps", "posterior_steps", "critic_hidden",
     )  # fmt: skip
-    return {k: config.to_dict()[k] for k in keys}
+    values = config.to_dict()
+    return {k: values[k] for k in keys}
 
 
 def summarise(runs: list[dict]) -> dict:

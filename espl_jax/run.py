@@ -402,7 +402,8 @@ def finish(
 
 def exported_actors(trainer: Trainer, state: TrainState) -> tuple[Any, list[str]]:
     """Each seed's actor whose formula the run exports, and which one it is ("final" or
-    "best": the hall of fame's anchor, with ``keep_best_formula`` once one was eligible)."""
+    "best": the hall of fame's anchor, with ``keep_best_formula`` once one was eligible).
+    ``state`` is the host (numpy) copy that ``finish`` gathered."""
     seeds = trainer.config.seeds
     if not trainer.config.keep_best_formula or state.anchor is None:
         return state.actor, ["final"] * seeds
@@ -411,7 +412,7 @@ def exported_actors(trainer: Trainer, state: TrainState) -> tuple[Any, list[str]
     def pick(anchor, final):
         return np.where(has_anchor.reshape(-1, *([1] * (anchor.ndim - 1))), anchor, final)
 
-    actors = jax.tree.map(pick, gather(state.anchor), gather(state.actor))
+    actors = jax.tree.map(pick, state.anchor, state.actor)
     return actors, ["best" if a else "final" for a in has_anchor]
 
 
