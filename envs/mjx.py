@@ -47,7 +47,11 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 from flax import struct
-from mujoco import mjx
+
+# mujoco-mjx prints "Failed to import warp" on import when the optional GPU backend (NVIDIA Warp)
+# is absent, as it is on every CPU install; MJX's JAX backend, the one used here, needs no Warp.
+with contextlib.redirect_stdout(None):
+    from mujoco import mjx
 
 from envs.base import Environment, PRNGKey, StepOutput, time_limit
 

@@ -311,7 +311,7 @@ def adapter(trainer: Trainer, task_params: Any):
         from espl_jax.host_meta import HostAdapter
 
         return HostAdapter(trainer, task_params)
-    return trainer.over_seeds(lambda s, k: trainer.adapt(s, task_params, k))
+    return lambda state, keys: trainer.compiled_adapt(state, task_params, keys)
 
 
 def evaluator(trainer: Trainer, episodes: int):

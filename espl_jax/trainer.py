@@ -254,20 +254,31 @@ class Trainer:
         sharding = jax.sharding.NamedSharding(self.mesh, jax.sharding.PartitionSpec("seeds"))
         return jax.device_put(state, sharding)
 
-    def over_seeds(self, fn, donate: bool = False):
-        """``fn`` of one seed, jitted and vmapped over the leading seed axis of every argument.
+    def over_seeds(self, fn, donate: bool = False, shared: tuple[int, ...] = ()):
+        """``fn`` of one seed, jitted and vmapped over the leading seed axis of every argument
+        but those at the positions ``shared`` (the same for every seed, e.g. task params).
 
         With a mesh it is ``shard_map``-ped: each device vmaps ``fn`` over its own seeds, with
-        no communication between devices. A seed computes what it computes on one device up to
-        the last bit of rounding (XLA compiles the per-device program apart, and its matrix
-        products round differently: tests/test_sharding.py).
+        no communication between devices (the shared arguments are replicated). A seed computes
+        what it computes on one device up to the last bit of rounding (XLA compiles the
+        per-device program apart, and its matrix products round differently:
+        tests/test_sharding.py).
         """
-        batched = jax.vmap(fn)
+
+        def batched(*args):
+            axes = tuple(None if i in shared else 0 for i in range(len(args)))
+            return jax.vmap(fn, in_axes=axes)(*args)
+
         if self.mesh is not None:
-            spec = jax.sharding.PartitionSpec("seeds")
-            batched = jax.shard_map(
-                batched, mesh=self.mesh, in_specs=spec, out_specs=spec, check_vma=False
-            )
+            seeds, replicated = jax.sharding.PartitionSpec("seeds"), jax.sharding.PartitionSpec()
+            mapped = batched
+
+            def batched(*args):
+                specs = tuple(replicated if i in shared else seeds for i in range(len(args)))
+                return jax.shard_map(
+                    mapped, mesh=self.mesh, in_specs=specs, out_specs=seeds, check_vma=False
+                )(*args)
+
         return jax.jit(batched, donate_argnums=0 if donate else ())
 
     @property
@@ -547,10 +558,13 @@ class Trainer:
         keys = jax.random.split(key, n * cfg.eval_runs).reshape(n, cfg.eval_runs, -1)
         return jax.vmap(jax.vmap(one, (None, 0)), (0, 0))(task_params, keys)
 
-    def compiled_adapt(self, split: str):
-        """jit(vmap(adapt)) over seeds on the "test" or "train" tasks: (state, keys [S, 2])."""
-        params = self.tasks[1] if split == "test" else self.tasks[0]
-        return self.over_seeds(lambda s, k: self.adapt(s, params, k))
+    @cached_property
+    def compiled_adapt(self):
+        """jit(vmap(adapt)) over seeds: (state [S], task params [N], keys [S, 2]) -> Adapted
+        [S, N, runs]. The tasks are an argument, not a constant, so the progress evaluations and
+        the final one on the test tasks and on as many training tasks share one compile (minutes
+        for the MJX families)."""
+        return self.over_seeds(self.adapt, shared=(1,))
 
     def task_policy(self, actor_params: dict, z: np.ndarray | None) -> dict:
         """The task policy at z (numpy), for export: ESPL's own params, CSP's Φ/Ψ at z."""

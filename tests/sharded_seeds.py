@@ -35,6 +35,9 @@ def train(devices: int) -> tuple[Trainer, list[np.ndarray], set[int]]:
 
 sharded, two, placed = train(devices=2)
 _, one, _ = train(devices=1)
+# An argument shared by every seed (task params in Trainer.compiled_adapt) is replicated, not
+# split over the devices: seed s gets x[s] * sum(t).
+with_shared = sharded.over_seeds(lambda x, t: x * t.sum(), shared=(1,))
 report = {
     "jax_devices": len(jax.devices()),
     "eval_devices": sharded.device_info,
@@ -46,5 +49,8 @@ report = {
     ],
     # how different two seeds are: a swapped or duplicated shard would show up at this size
     "seed_gap": max(float(np.max(np.abs(b[0] - b[1]))) for b in one),
+    "shared_argument": np.asarray(
+        with_shared(np.array([1.0, 2.0]), np.array([1.0, 2.0, 4.0]))
+    ).tolist(),
 }
 print(json.dumps(report))

@@ -28,3 +28,4 @@ def test_two_cpu_devices_give_the_per_seed_results_of_one(tmp_path, jax_cache):
     assert report["state_devices"] == [2]  # every leaf of the state is split over both devices
     assert report["seed_gap"] > 1e-3
     assert max(report["max_abs_diff"]) < 1e-5, report
+    assert report["shared_argument"] == [7.0, 14.0]
