@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import os
 import sys
 from collections.abc import Callable
+from pathlib import Path
 
 from espl_jax.config import UserError
 
@@ -21,3 +23,31 @@ def run_main(main: Callable[[list[str] | None], int], argv: list[str] | None = N
     except KeyboardInterrupt:
         print("interrupted; resume with --resume RUN_DIR", file=sys.stderr)
         return 130
+
+
+def use_compilation_cache() -> str | None:
+    """Keep XLA's compiled programs on disk between runs, unless the user chose otherwise.
+
+    Compiling a meta-RL chunk over MJX physics takes minutes on a CPU (the symbolic network,
+    the critics and two collection phases of the Newton solver in one program); a second run of
+    the same env, actor and budget (another seed, a resume) loads it in seconds. The programs
+    are the same bit for bit, so results do not change. ``JAX_COMPILATION_CACHE_DIR`` set by the
+    user wins (empty or "off" turns the cache off); else ``$XDG_CACHE_HOME/espl_jax/xla`` (or
+    ``~/.cache/espl_jax/xla``). Returns the directory, or None when off.
+    """
+    import jax
+
+    chosen = os.environ.get("JAX_COMPILATION_CACHE_DIR")
+    if chosen is not None:
+        if chosen.strip() in ("", "off"):
+            jax.config.update("jax_compilation_cache_dir", None)  # JAX read the variable too
+            return None
+        return chosen
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    path = Path(base) / "espl_jax" / "xla"
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None  # a read-only home: compile every time, as JAX does by default
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    return str(path)

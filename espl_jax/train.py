@@ -9,7 +9,7 @@ from pathlib import Path
 
 from espl_jax import config as config_lib
 from espl_jax import run
-from espl_jax.cli import run_main
+from espl_jax.cli import run_main, use_compilation_cache
 from espl_jax.config import UserError
 
 
@@ -95,6 +95,7 @@ def main(argv: list[str] | None = None) -> int:
             devices=args.devices,
         )
         run_dir = Path(args.out) if args.out else run.new_run_dir(config)
+    use_compilation_cache()
     started = time.perf_counter()
     result = run.train(
         config, run_dir, resume=bool(args.resume), show_progress=not args.no_progress

@@ -177,3 +177,32 @@ def test_train_refuses_to_overwrite_a_run(stopped_run, tmp_path):
     config.write_text((stopped_run / "config.yaml").read_text())
     proc = cli("train", "--config", str(config), "--out", str(stopped_run), "--no-progress")
     assert_user_error(proc, "already holds a run", "--resume")
+
+
+@pytest.mark.parametrize(
+    ("variables", "expected"),
+    [
+        ({"XDG_CACHE_HOME": "{tmp}"}, "{tmp}/espl_jax/xla"),  # the default place
+        ({"JAX_COMPILATION_CACHE_DIR": "{tmp}/mine"}, "{tmp}/mine"),  # the user's choice wins
+        ({"JAX_COMPILATION_CACHE_DIR": "off"}, None),
+    ],
+)
+def test_compilation_cache_location(tmp_path, monkeypatch, variables, expected):
+    import jax
+
+    from espl_jax.cli import use_compilation_cache
+
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
+    for name, value in variables.items():
+        monkeypatch.setenv(name, value.format(tmp=tmp_path))
+    before = jax.config.jax_compilation_cache_dir
+    try:
+        got = use_compilation_cache()
+        expected = expected and expected.format(tmp=tmp_path)
+        assert got == expected
+        if "XDG_CACHE_HOME" in variables:
+            assert Path(got).is_dir() and jax.config.jax_compilation_cache_dir == got
+        if expected is None:
+            assert jax.config.jax_compilation_cache_dir is None
+    finally:
+        jax.config.update("jax_compilation_cache_dir", before)
