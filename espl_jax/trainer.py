@@ -266,18 +266,15 @@ class Trainer:
         """
 
         def batched(*args):
-            axes = tuple(None if i in shared else 0 for i in range(len(args)))
-            return jax.vmap(fn, in_axes=axes)(*args)
-
-        if self.mesh is not None:
+            per_seed = [i not in shared for i in range(len(args))]
+            mapped = jax.vmap(fn, in_axes=tuple(0 if p else None for p in per_seed))
+            if self.mesh is None:
+                return mapped(*args)
             seeds, replicated = jax.sharding.PartitionSpec("seeds"), jax.sharding.PartitionSpec()
-            mapped = batched
-
-            def batched(*args):
-                specs = tuple(replicated if i in shared else seeds for i in range(len(args)))
-                return jax.shard_map(
-                    mapped, mesh=self.mesh, in_specs=specs, out_specs=seeds, check_vma=False
-                )(*args)
+            specs = tuple(seeds if p else replicated for p in per_seed)
+            return jax.shard_map(
+                mapped, mesh=self.mesh, in_specs=specs, out_specs=seeds, check_vma=False
+            )(*args)
 
         return jax.jit(batched, donate_argnums=0 if donate else ())
 
