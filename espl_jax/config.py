@@ -64,6 +64,9 @@ class Config:
     gamma: float = 0.99
     # ρ of the AR(1) exploration noise in collection (trainer.collect); 0 is SAC's white noise.
     exploration_correlation: float = 0.0
+    # ε in log π's squashing term log(1 − tanh(u)² + ε) (policies.tanh_gaussian_log_prob): 0 is
+    # exact and unbounded; rlkit (PEARL, the authors' CSP code) uses 1e-6, which bounds it.
+    squash_epsilon: float = 0.0
     polyak: float = 0.005
     reward_scale: float = 1.0
     grad_clip: float = 0.5  # global-norm clip of the policy gradient (authors' code)
@@ -195,6 +198,7 @@ _NON_NEGATIVE_FLOAT = (
     "select_scale",
     "bias_l1_scale",
     "kl_weight",
+    "squash_epsilon",
     "logit_clamp_scale",
     "weight_l1_scale",
 )

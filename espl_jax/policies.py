@@ -20,6 +20,7 @@ always ``stop_gradient``-ed: only the critic trains the encoder (Algorithm 2, DE
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -40,13 +41,21 @@ Params = dict[str, Any]
 TaskPolicy = dict[str, Any]
 
 
-def tanh_gaussian_log_prob(u: jax.Array, mean: jax.Array, log_std: jax.Array) -> jax.Array:
-    """log π(tanh(u)) for u ~ N(mean, σ²): Gaussian log-density minus Σ log(1 − tanh(u)²).
+def tanh_gaussian_log_prob(
+    u: jax.Array, mean: jax.Array, log_std: jax.Array, squash_epsilon: float = 0.0
+) -> jax.Array:
+    """log π(tanh(u)) for u ~ N(mean, σ²): Gaussian log-density minus Σ log(1 − tanh(u)² + ε).
 
-    Uses log(1 − tanh(u)²) = 2 (log 2 − u − softplus(−2u)), stable for large |u| (SAC, App. C).
+    With ε = 0 (SAC, App. C) it uses log(1 − tanh(u)²) = 2 (log 2 − u − softplus(−2u)), exact and
+    stable, and unbounded: a mean of 10³ (a CSP network at initialisation on walker2d_params,
+    whose velocities reach 10) gives log π ≈ 2|u| per action dim, an entropy term of −10³ per
+    step in the critic's target, which then diverges. ε > 0 is rlkit's TanhNormal (PEARL's and
+    the authors' CSP code use 1e-6): log(1 − tanh² + ε) = logaddexp(exact, log ε) ≥ log ε.
     """
     gauss = -0.5 * ((u - mean) / jnp.exp(log_std)) ** 2 - log_std - 0.5 * jnp.log(2 * jnp.pi)
     correction = 2.0 * (jnp.log(2.0) - u - jax.nn.softplus(-2.0 * u))
+    if squash_epsilon > 0.0:
+        correction = jnp.logaddexp(correction, math.log(squash_epsilon))
     return jnp.sum(gauss - correction, axis=-1)
 
 
@@ -144,7 +153,8 @@ class Actor:
         """a = tanh(μ + σ ε) with its log-probability and the operator penalty, for one obs."""
         mean, log_std, penalty = self.mean_and_log_std(policy, mask, obs)
         u = mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape)
-        return jnp.tanh(u), tanh_gaussian_log_prob(u, mean, log_std), penalty
+        log_prob = tanh_gaussian_log_prob(u, mean, log_std, self.config.squash_epsilon)
+        return jnp.tanh(u), log_prob, penalty
 
     def act_with_noise(
         self, policy: TaskPolicy, mask: list | None, obs: jax.Array, eps: jax.Array

@@ -580,3 +580,18 @@ def test_tanh_gaussian_log_prob_matches_numpy():
         *(jnp.asarray(a, jnp.float32) for a in (u, mean, log_std))
     )
     np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-4)
+
+
+def test_tanh_gaussian_log_prob_squash_epsilon_is_rlkits_and_bounded():
+    # rlkit's TanhNormal: log(1 - tanh(u)^2 + eps); at |u| = 40 the exact term is -2|u| per dim,
+    # while with eps it floors at log(eps): the entropy bonus stays bounded for saturated means.
+    u = np.array([[-40.0, -3.0, 0.5], [0.0, 2.0, 40.0]])
+    mean = np.array([[-39.0, -2.5, 0.0], [0.3, 1.0, 41.0]])
+    log_std = np.zeros_like(u)
+    gauss = -0.5 * (u - mean) ** 2 - 0.5 * np.log(2 * np.pi)
+    expected = np.sum(gauss - np.log(1 - np.tanh(u) ** 2 + 1e-6), axis=-1)
+    args = (jnp.asarray(a, jnp.float32) for a in (u, mean, log_std))
+    got = jax.jit(tanh_gaussian_log_prob, static_argnums=3)(*args, 1e-6)
+    np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-3)
+    exact = tanh_gaussian_log_prob(*(jnp.asarray(a, jnp.float32) for a in (u, mean, log_std)))
+    assert float(exact[1]) > float(got[1]) + 50  # the unbounded term the epsilon removes
