@@ -429,7 +429,8 @@ def result_header(
     return {
         "env": trainer.config.env,
         "actor": trainer.config.actor,
-        "best_seed": best,
+        "best_seed": best,  # index into the run's seeds (export, analyze)
+        "train_seed": trainer.config.seed + best,  # the --seed that trains it alone
         "training": {
             "episodes": int(state.episodes[best]),
             "env_steps": int(state.env_steps[best]),

@@ -135,7 +135,7 @@ def start_distributed(args: argparse.Namespace) -> None:
 
 def print_single_task(result: dict) -> None:
     if "formula" in result:
-        print(f"formula (seed {result['best_seed']}, length {result['length']:.0f}):")
+        print(f"formula (seed {result['train_seed']}, length {result['length']:.0f}):")
         print("  " + result["formula"].replace("\n", "\n  "))
     ev = result["jax_eval"]
     # Host (Box2D) envs are evaluated in gymnasium, JAX envs in JAX; an MLP has no formula.
@@ -154,7 +154,7 @@ def print_meta(result: dict) -> None:
     tasks = result["test"]["per_task"]
     print(
         f"{result['actor']} on {len(tasks)} test tasks (PEARL's protocol, seed "
-        f"{result['best_seed']}): mean return {result['test']['mean']:.2f}; "
+        f"{result['train_seed']}): mean return {result['test']['mean']:.2f}; "
         f"on {result['train']['tasks']} training tasks {result['train']['mean']:.2f}"
     )
     if "length" in result:

@@ -595,3 +595,20 @@ def test_tanh_gaussian_log_prob_squash_epsilon_is_rlkits_and_bounded():
     np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-3)
     exact = tanh_gaussian_log_prob(*(jnp.asarray(a, jnp.float32) for a in (u, mean, log_std)))
     assert float(exact[1]) > float(got[1]) + 50  # the unbounded term the epsilon removes
+
+
+def test_eval_json_names_the_seed_that_trains_the_chosen_one_alone(capsys):
+    # best_seed indexes the run's seeds; with --seed 3 --seeds 2, index 1 is --seed 4's key.
+    from types import SimpleNamespace
+
+    from espl_jax import train
+    from espl_jax.trainer import Trainer
+
+    trainer = Trainer(config_lib.resolve("cartpole", seed=3, seeds=2))
+    ones = np.ones(2, np.int32)
+    state = SimpleNamespace(episodes=ones, env_steps=ones, iteration=ones)
+    head = run.result_header(trainer, state, 1, 0.0)
+    assert (head["best_seed"], head["train_seed"]) == (1, 4)
+    train.print_single_task({**head, "formula": "a0 = x2", "length": 3, "jax_eval": {
+        "episodes": 10, "mean": 1.0, "std": 0.0}, "evaluated_in": "jax"})  # fmt: skip
+    assert "formula (seed 4, length 3)" in capsys.readouterr().out
