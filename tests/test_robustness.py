@@ -103,3 +103,34 @@ def test_pick_best_and_shortest_within():
     assert hof.pick(rows, "shortest-within", 1.0)["iteration"] == 4
     with pytest.raises(UserError):
         hof.pick([rows[-1]], "best")
+
+
+def test_bias_l1_is_weight_times_mean_abs_bias_and_pulls_every_bias_to_zero():
+    """``bias_l1_scale`` (the authors' ``bl0_scale``): extra = scale · mean |b| over all biases,
+    so each bias, the never-masked output bias included, feels a pull of scale / N towards 0."""
+    from espl_jax.policies import make_actor
+
+    scale = 1.0
+    actor = make_actor(config_lib.from_mapping({**TINY, "bias_l1_scale": scale}), 4, 1, 0)
+    assert actor.has_extra_loss
+    params = actor.init(jax.random.PRNGKey(0))
+    # Random non-zero biases of both signs (init may set them to 0, where |b| has no slope).
+    keys = jax.random.split(jax.random.PRNGKey(1), len(params["mean"]["b"]))
+    biases = [jax.random.normal(k, b.shape) for k, b in zip(keys, params["mean"]["b"], strict=True)]
+    params = {**params, "mean": {**params["mean"], "b": biases}}
+    flat = np.concatenate([np.asarray(b).ravel() for b in biases])
+    _, extra = actor.regularizers(params, jnp.asarray(0.01))
+    np.testing.assert_allclose(extra, scale * np.mean(np.abs(flat)), rtol=1e-6)
+
+    def loss(b):
+        return actor.regularizers({**params, "mean": {**params["mean"], "b": b}}, 0.01)[1]
+
+    grads = jax.grad(loss)(biases)
+    for g, b in zip(grads, biases, strict=True):
+        assert np.all(np.asarray(b) != 0)
+        np.testing.assert_allclose(g, scale * np.sign(b) / flat.size, rtol=1e-6)
+    assert flat.size == actor.symbolic.num_biases
+    # Off by default: the paper's loss has no such term.
+    plain = make_actor(config_lib.from_mapping(dict(TINY)), 4, 1, 0)
+    assert not plain.has_extra_loss
+    assert float(plain.regularizers(params, jnp.asarray(0.01))[1]) == 0.0
