@@ -369,16 +369,22 @@ class GeneratedSymbolic(Actor):
         return selector.deterministic_mask(policy["probs"], policy["mean"]["w"])
 
     def regularizers(self, policy, l_min):
-        """L_select on σ(Ψ(z)); the authors' logit clamp Σ relu(|s| − 6) and L1 on Φ's w."""
+        """L_select on σ(Ψ(z)); the authors' logit clamp Σ relu(|s| − 6), L1 on Φ's w and
+        (``bias_l1_scale``, as for ESPL) on Φ's b."""
         cfg = self.config
         select = selector.select_loss(policy["probs"], l_min)
         clamp = sum(jnp.sum(jax.nn.relu(jnp.abs(s) - LOGIT_BOUND)) for s in policy["logits"])
         l1 = jnp.mean(jnp.abs(jnp.concatenate([w.ravel() for w in policy["mean"]["w"]])))
-        return select, cfg.logit_clamp_scale * clamp + cfg.weight_l1_scale * l1
+        extra = cfg.logit_clamp_scale * clamp + cfg.weight_l1_scale * l1
+        if cfg.bias_l1_scale > 0:  # off: the computation of the shipped CSP configs unchanged
+            b_l1 = jnp.mean(jnp.abs(jnp.concatenate([b.ravel() for b in policy["mean"]["b"]])))
+            extra = extra + cfg.bias_l1_scale * b_l1
+        return select, extra
 
     @property
     def has_extra_loss(self) -> bool:
-        return self.config.logit_clamp_scale > 0 or self.config.weight_l1_scale > 0
+        cfg = self.config
+        return cfg.logit_clamp_scale > 0 or cfg.weight_l1_scale > 0 or cfg.bias_l1_scale > 0
 
     def l0_ratio(self, policy):
         return selector.expected_l0(policy["probs"]) / selector.count(policy["probs"])

@@ -230,6 +230,35 @@ def test_csp_export_equals_the_generated_network_at_z(tmp_path):
     assert len(np.unique(np.round(got, 4))) > 1
 
 
+def test_csp_bias_l1_adds_scale_times_mean_abs_generated_bias():
+    """``bias_l1_scale`` on CSP: the extra loss grows by scale · mean |Φ_b(z)|, and its gradient
+    reaches Φ_b's params (the generator, not a stored bias)."""
+    base = {"env": "cartpole_fl_ood", "layout": "csp"}
+    plain = GeneratedSymbolic(config_lib.from_mapping(base), obs_dim=4, action_dim=1, latent_dim=5)
+    cfg = config_lib.from_mapping({**base, "bias_l1_scale": 2.0})
+    actor = GeneratedSymbolic(cfg, obs_dim=4, action_dim=1, latent_dim=5)
+    assert actor.has_extra_loss
+    params = actor.init(jax.random.PRNGKey(0))
+    z = jax.random.normal(jax.random.PRNGKey(1), (5,))
+    policy = actor.at(params, z)
+    biases = np.concatenate([np.asarray(b).ravel() for b in policy["mean"]["b"]])
+    assert np.mean(np.abs(biases)) > 1e-3  # Φ_b(z) is not 0 at init
+    _, with_l1 = actor.regularizers(policy, jnp.asarray(0.01))
+    _, without = plain.regularizers(policy, jnp.asarray(0.01))
+    np.testing.assert_allclose(with_l1 - without, 2.0 * np.mean(np.abs(biases)), rtol=1e-5)
+
+    def extra(p):
+        return (
+            actor.regularizers(actor.at(p, z), 0.01)[1]
+            - plain.regularizers(plain.at(p, z), 0.01)[1]
+        )
+
+    grads = jax.grad(extra)(params)
+    assert any(np.any(np.asarray(g) != 0) for g in jax.tree.leaves(grads["phi_b"]))
+    for name in ("phi_w", "psi"):
+        assert all(np.all(np.asarray(g) == 0) for g in jax.tree.leaves(grads[name]))
+
+
 # The single-task case after the restructure ------------------------------------------------------
 
 
