@@ -41,6 +41,11 @@ Params = dict[str, Any]
 TaskPolicy = dict[str, Any]
 
 
+def _mean_abs(arrays: list[jax.Array]) -> jax.Array:
+    """mean |x| over every entry of a list of arrays (the L1 terms on w and b)."""
+    return jnp.mean(jnp.abs(jnp.concatenate([a.ravel() for a in arrays])))
+
+
 def tanh_gaussian_log_prob(
     u: jax.Array, mean: jax.Array, log_std: jax.Array, squash_epsilon: float = 0.0
 ) -> jax.Array:
@@ -246,8 +251,7 @@ class StoredSymbolic(Actor):
             select = selector.l1_loss(policy["mean"]["w"])
         extra = jnp.zeros(())
         if self.has_extra_loss:
-            biases = jnp.concatenate([b.ravel() for b in policy["mean"]["b"]])
-            extra = self.config.bias_l1_scale * jnp.mean(jnp.abs(biases))
+            extra = self.config.bias_l1_scale * _mean_abs(policy["mean"]["b"])
         return select, extra
 
     @property
@@ -374,10 +378,10 @@ class GeneratedSymbolic(Actor):
         cfg = self.config
         select = selector.select_loss(policy["probs"], l_min)
         clamp = sum(jnp.sum(jax.nn.relu(jnp.abs(s) - LOGIT_BOUND)) for s in policy["logits"])
-        l1 = jnp.mean(jnp.abs(jnp.concatenate([w.ravel() for w in policy["mean"]["w"]])))
+        l1 = _mean_abs(policy["mean"]["w"])
         extra = cfg.logit_clamp_scale * clamp + cfg.weight_l1_scale * l1
         if cfg.bias_l1_scale > 0:  # off: the computation of the shipped CSP configs unchanged
-            b_l1 = jnp.mean(jnp.abs(jnp.concatenate([b.ravel() for b in policy["mean"]["b"]])))
+            b_l1 = _mean_abs(policy["mean"]["b"])
             extra = extra + cfg.bias_l1_scale * b_l1
         return select, extra
 
