@@ -80,7 +80,7 @@ class Config:
     # 0 in their released script). Biases are never masked, so a constant the pruned paths no
     # longer need stays in the formula unless something pulls it back to 0. configs/cartpole.yaml
     # uses 1.0: an offset of 0.05 there drives the cart off the track (README, "Across seeds").
-    # CSP applies it to the generated biases Φ_b(z).
+    # CSP applies it to the generated biases Φ_b(z) (configs/cartpole_fl_ood.yaml: 10.0).
     bias_l1_scale: float = 0.0
     select_scale: float = 0.08  # α2
     target_l0_ratio: float = 0.002  # l_t, as a fraction of all weights

@@ -380,7 +380,7 @@ class GeneratedSymbolic(Actor):
         clamp = sum(jnp.sum(jax.nn.relu(jnp.abs(s) - LOGIT_BOUND)) for s in policy["logits"])
         l1 = _mean_abs(policy["mean"]["w"])
         extra = cfg.logit_clamp_scale * clamp + cfg.weight_l1_scale * l1
-        if cfg.bias_l1_scale > 0:  # off: the computation of the shipped CSP configs unchanged
+        if cfg.bias_l1_scale > 0:  # skipped at 0: configs without it compute exactly as before
             b_l1 = _mean_abs(policy["mean"]["b"])
             extra = extra + cfg.bias_l1_scale * b_l1
         return select, extra
