@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import sympy as sp
 
-from espl_jax import evaluation, run
+from espl_jax import evaluation, meta, run
 
 
 def zero_offsets(expr: sp.Expr) -> dict[str, sp.Expr]:
@@ -45,13 +45,14 @@ def main() -> None:
     args = parser.parse_args()
     for run_dir in map(Path, args.run_dirs):
         config = run.saved_config(run_dir)
-        tasks = json.loads((run_dir / "tasks.json").read_text())["test"]
+        tasks = json.loads((run_dir / meta.TASKS_FILE).read_text())["test"]
         means: dict[str, list[float]] = {}
         for i, task in enumerate(tasks):
-            policy = evaluation.load_policy(run_dir / "test_tasks" / str(i) / run.POLICY_FILE)
+            task_dir = run_dir / meta.TEST_TASKS_DIR / str(i)
+            policy = evaluation.load_policy(task_dir / run.POLICY_FILE)
             low, high = policy.ACTION_LOW, policy.ACTION_HIGH
             xs = sp.symbols(f"x0:{policy.OBS_DIM}")
-            lines = (run_dir / "test_tasks" / str(i) / "expression.txt").read_text().splitlines()
+            lines = (task_dir / run.EXPRESSION_FILE).read_text().splitlines()
             exprs = [sp.sympify(line.split("=", 1)[1], {str(x): x for x in xs}) for line in lines]
             variants = [zero_offsets(e) for e in exprs]
             for name in variants[0]:
