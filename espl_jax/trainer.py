@@ -89,7 +89,10 @@ class Trainer:
 
     @cached_property
     def _env_and_family(self):
-        env, family = make_env(self.config.env)
+        # Concrete arrays (MJX's put_model) even when first asked for inside a jit trace, as
+        # ``benchmarks/meta_cost.py`` does: a cached tracer would leak into later traces.
+        with jax.ensure_compile_time_eval():
+            env, family = make_env(self.config.env)
         kinds = META_ACTORS if family is not None else SINGLE_TASK_ACTORS
         if self.config.actor not in kinds:
             what = "meta-RL task family" if family is not None else "single-task env"

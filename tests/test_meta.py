@@ -286,3 +286,14 @@ def test_single_task_run_is_the_pre_restructure_one():
         **close,
     )
     assert float(np.asarray(state.log_alpha)[0]) == pytest.approx(recorded["log_alpha"], rel=1e-4)
+
+
+def test_an_mjx_family_first_built_inside_a_trace_holds_no_tracer():
+    """``benchmarks/meta_cost.py`` first touches the trainer's env inside a jitted warm-up: the
+    cached MJX model must be concrete arrays, not that trace's tracers (which leaked into the
+    next trace as an UnexpectedTracerError before the fix)."""
+    trainer = Trainer(config_lib.resolve(env="invdoublepend_params"))
+    jax.jit(lambda x: x + trainer.env.obs_dim)(0.0)
+    leaves = jax.tree.leaves(trainer.env._mx)
+    assert leaves
+    assert not any(isinstance(leaf, jax.core.Tracer) for leaf in leaves)
