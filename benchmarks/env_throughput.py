@@ -1,4 +1,6 @@
-"""Env steps per second of the MJX envs under a jitted ``lax.scan`` of random actions.
+"""Env steps per second of the MuJoCo envs under a jitted ``lax.scan`` of random actions, per
+physics backend (``--physics mjx,native``: MJX in the program, or MuJoCo's C engine through one
+host callback per step, ``envs/native.py``).
 
 For each env and batch size, one jitted function runs ``--steps`` steps of ``batch`` vmapped envs
 (batch 1: a single env, not vmapped) with uniform random actions in [-1, 1], resetting each env
@@ -9,6 +11,8 @@ Compile time (``jit(...).lower(...).compile()``) is measured separately from run
 is timed after one warm-up call, best of ``--repeats``. Prints a markdown table::
 
     python benchmarks/env_throughput.py --envs inverted_double_pendulum,hopper --batch 1,16,256
+    python benchmarks/env_throughput.py --physics mjx,native --batch 1,5,16,40 \
+        --envs hopper,walker2d,halfcheetah,inverted_double_pendulum --json results/throughput.json
 
 Not part of the test suite (CI never runs ``benchmarks/``).
 """
@@ -16,7 +20,13 @@ Not part of the test suite (CI never runs ``benchmarks/``).
 from __future__ import annotations
 
 import argparse
+import datetime
+import json
+import os
+import platform
+import subprocess
 import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -80,14 +90,16 @@ def make_run(env, steps: int, per_env_params: bool, batched: bool = True):
     return run
 
 
-def benchmark(name: str, batch: int, steps: int, repeats: int, per_env_params: bool) -> dict:
-    """Compiles and times one (env, batch) configuration.
+def benchmark(
+    name: str, batch: int, steps: int, repeats: int, per_env_params: bool, physics: str = "mjx"
+) -> dict:
+    """Compiles and times one (env, batch, physics) configuration.
 
     Returns:
         dict with ``compile_s``, ``run_s`` (best of ``repeats``), ``steps_per_s`` (env steps, i.e.
         ``batch * steps / run_s``) and ``episodes`` (resets during the timed run).
     """
-    env = envs.make(name)
+    env = envs.make(name, physics=physics) if name in envs.MUJOCO else envs.make(name)
     key = jax.random.key(0)
     params = env.default_params
     batched = batch > 1
@@ -141,21 +153,61 @@ def main(argv: list[str] | None = None) -> None:
         action="store_true",
         help="vmap over a batch of params (one mjx.Model per env, as in meta-RL); batch > 1",
     )
+    parser.add_argument(
+        "--physics", default="mjx", help="comma-separated MuJoCo backends: mjx, native"
+    )
+    parser.add_argument("--json", help="also write the rows, command and machine to this file")
     args = parser.parse_args(argv)
     names = [n.strip() for n in args.envs.split(",") if n.strip()]
     batches = [int(b) for b in args.batch.split(",")]
+    backends = [p.strip() for p in args.physics.split(",") if p.strip()]
     print(f"jax {jax.__version__}, backend {jax.default_backend()}, {args.steps} steps per call")
     print()
-    print("| env | batch | compile (s) | run (s) | env steps/s | resets |")
-    print("|---|---:|---:|---:|---:|---:|")
+    print("| env | physics | batch | compile (s) | run (s) | env steps/s | resets |")
+    print("|---|---|---:|---:|---:|---:|---:|")
+    rows = []
     for name in names:
         for batch in batches:
-            r = benchmark(name, batch, args.steps, args.repeats, args.per_env_params)
-            print(
-                f"| {name} | {batch} | {r['compile_s']:.1f} | {r['run_s']:.2f} "
-                f"| {_fmt_rate(r['steps_per_s'])} | {r['episodes']} |",
-                flush=True,
-            )
+            for physics in backends:
+                r = benchmark(name, batch, args.steps, args.repeats, args.per_env_params, physics)
+                rows.append(dict(env=name, physics=physics, batch=batch, **r))
+                print(
+                    f"| {name} | {physics} | {batch} | {r['compile_s']:.1f} | {r['run_s']:.2f} "
+                    f"| {_fmt_rate(r['steps_per_s'])} | {r['episodes']} |",
+                    flush=True,
+                )
+    if args.json:
+        write_result(args.json, rows, argv)
+
+
+def machine() -> dict:
+    """Where a benchmark ran: enough to tell two result files' machines apart."""
+    return dict(
+        platform=platform.platform(),
+        processor=platform.processor() or platform.machine(),
+        cpus=os.cpu_count(),
+        jax=jax.__version__,
+        jax_backend=jax.default_backend(),
+        devices=[str(d.device_kind) for d in jax.devices()],
+    )
+
+
+def write_result(path: str, rows: list[dict], argv: list[str] | None) -> None:
+    """The rows as JSON with the command, commit, machine and date that produced them."""
+    import sys
+
+    commit = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=False
+    ).stdout.strip()
+    record = dict(
+        command="python benchmarks/env_throughput.py " + " ".join(argv or sys.argv[1:]),
+        commit=commit or None,
+        date=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        machine=machine(),
+        rows=rows,
+    )
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(json.dumps(record, indent=1) + "\n")
 
 
 if __name__ == "__main__":

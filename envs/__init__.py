@@ -32,6 +32,7 @@ from envs import box2d, tasks
 from envs.base import Environment, time_limit
 from envs.box2d import HostEnv
 from envs.classic import CartPole, MountainCar, Pendulum
+from envs.physics import PHYSICS, with_physics
 from envs.tasks import TaskFamily
 
 # A registry entry builds either a functional JAX env or, for the Box2D tasks, a ``HostEnv``: a
@@ -42,10 +43,10 @@ EnvFactory = Callable[..., Environment | HostEnv]
 def _mjx_factory(name: str) -> EnvFactory:
     """A factory that imports ``envs.mjx`` (and with it MuJoCo/MJX) only when called."""
 
-    def factory(**kwargs) -> Environment:
+    def factory(physics: str = "mjx", **kwargs) -> Environment:
         from envs.mjx import MJX_ENVS
 
-        return MJX_ENVS[name](**kwargs)
+        return with_physics(MJX_ENVS[name](**kwargs), physics)
 
     factory.__name__ = f"make_{name}"
     return factory
@@ -67,6 +68,11 @@ _REGISTRY: dict[str, EnvFactory] = {
 }
 
 KNOWN_ENVS: tuple[str, ...] = tuple(sorted(_REGISTRY))
+# The envs and families simulated by MuJoCo: their factories take ``physics=`` (``PHYSICS``).
+MUJOCO: frozenset[str] = frozenset(
+    {name for name, f in _REGISTRY.items() if f.__name__.startswith("make_")}
+    | set(tasks.MUJOCO_FAMILIES)
+)
 KNOWN_FAMILIES: tuple[str, ...] = tuple(sorted(tasks.FAMILIES))
 
 
@@ -121,11 +127,12 @@ def is_family(name: str) -> bool:
     return name in tasks.FAMILIES
 
 
-def make_family(name: str) -> TaskFamily:
+def make_family(name: str, **kwargs) -> TaskFamily:
     """Builds a meta-RL task family (``envs/tasks.py``; paper App. B.2).
 
     Args:
         name: one of ``KNOWN_FAMILIES``.
+        **kwargs: forwarded to the family's factory (``physics=`` for the ``MUJOCO`` ones).
 
     Returns:
         The ``TaskFamily``: its env (built with the family's horizon), task counts, and the
@@ -139,12 +146,14 @@ def make_family(name: str) -> TaskFamily:
             f"unknown task family {name!r}; known: {', '.join(KNOWN_FAMILIES)}"
             + (f" ({name!r} is a single-task environment: envs.make)" if name in _REGISTRY else "")
         )
-    return tasks.FAMILIES[name]()
+    return tasks.FAMILIES[name](**kwargs)
 
 
 __all__ = [
     "KNOWN_ENVS",
     "KNOWN_FAMILIES",
+    "MUJOCO",
+    "PHYSICS",
     "CartPole",
     "Environment",
     "HostEnv",
@@ -157,4 +166,5 @@ __all__ = [
     "make_family",
     "register",
     "time_limit",
+    "with_physics",
 ]

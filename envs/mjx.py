@@ -37,6 +37,7 @@ raw action (MuJoCo clamps the control itself), so both agree for every in-bounds
 from __future__ import annotations
 
 import contextlib
+import functools
 import importlib.util
 import os
 import warnings
@@ -156,13 +157,23 @@ class MjxEnv(Environment):
         self.name = self.env_name
         self.horizon = int(horizon)
         self.dt = float(self.model.opt.timestep) * self.frame_skip
-        self._mx = mjx.put_model(self.model)
-        self._data0 = mjx.make_data(self._mx)
         self.init_qpos = np.array(self.model.qpos0, np.float64)
         self.init_qvel = np.zeros(self.model.nv, np.float64)
         self.action_dim = int(self.model.nu)
         self.action_low, self.action_high = self._action_bounds()
-        self.obs_dim = int(jax.eval_shape(self._obs, self._data0).shape[0])
+        self.obs_dim = int(self._obs(mujoco.MjData(self.model), np).shape[-1])
+
+    @functools.cached_property
+    def _mx(self) -> mjx.Model:
+        """The MJX model, put on the device on first use (the native backend never needs it).
+        Concrete even when first asked for inside a jit trace: a cached tracer would leak."""
+        with jax.ensure_compile_time_eval():
+            return mjx.put_model(self.model)
+
+    @functools.cached_property
+    def _data0(self) -> mjx.Data:
+        with jax.ensure_compile_time_eval():
+            return mjx.make_data(self._mx)
 
     # ----------------------------------------------------------------------------------------
     # hooks
@@ -182,8 +193,15 @@ class MjxEnv(Environment):
         """Samples the initial ``(qpos (nq,), qvel (nv,))``; overridden per env."""
         raise NotImplementedError
 
-    def _obs(self, data: mjx.Data) -> jax.Array:
-        """The observation, float32 (obs_dim,), of ``data``."""
+    def _obs(self, data, xp=jnp) -> jax.Array:
+        """The observation (..., obs_dim) of ``data`` in its own dtype.
+
+        Task hooks (``_obs``, ``_reward``, ``_is_healthy``, ``_bullet_terms``) are written once
+        for both backends: ``xp`` is ``jax.numpy`` (MJX, one env under vmap) or ``numpy`` (the
+        native backend, ``envs/native.py``, float64 arrays with a leading batch axis), so they
+        index from the end (``[..., i]``) and read only ``qpos``, ``qvel``, ``qfrc_constraint``
+        and ``site_xpos`` of ``data``.
+        """
         raise NotImplementedError
 
     def _before_substep(
@@ -198,9 +216,10 @@ class MjxEnv(Environment):
         return model, data
 
     def _reward(
-        self, data_before: mjx.Data, data: mjx.Data, ctrl: jax.Array, params: MjxParams
+        self, data_before, data, ctrl: jax.Array, params: MjxParams, xp=jnp
     ) -> tuple[jax.Array, jax.Array, dict[str, jax.Array]]:
-        """``(reward (), terminated (), info)`` of the transition ``data_before -> data``."""
+        """``(reward (...), terminated (...), info)`` of the transition ``data_before -> data``
+        (``xp`` and batching: see ``_obs``)."""
         raise NotImplementedError
 
     # ----------------------------------------------------------------------------------------
@@ -271,7 +290,7 @@ class MjxEnv(Environment):
         qpos, qvel = self._init_qpos_qvel(key)
         data = self.data_from_qpos_qvel(qpos, qvel, params)
         state = MjxState(data=data, t=jnp.zeros((), jnp.int32))
-        return self._obs(data), state
+        return self._obs(data).astype(jnp.float32), state
 
     def step(
         self, key: PRNGKey, state: MjxState, action: jax.Array, params: MjxParams
@@ -305,7 +324,7 @@ class MjxEnv(Environment):
         truncated = time_limit(t, self.horizon, terminated)
         info = {k: jnp.asarray(v, jnp.float32) for k, v in info.items()}
         return (
-            self._obs(data),
+            self._obs(data).astype(jnp.float32),
             MjxState(data=data, t=t),
             jnp.asarray(reward, jnp.float32),
             jnp.asarray(terminated, jnp.bool_),
@@ -348,32 +367,32 @@ class _Locomotion(MjxEnv):
             noise = _uniform(k2, (self.model.nv,), s)
         return qpos, jnp.asarray(self.init_qvel, jnp.float32) + noise
 
-    def _obs(self, data: mjx.Data) -> jax.Array:
-        qvel = jnp.clip(data.qvel, -10.0, 10.0) if self.clip_qvel_obs else data.qvel
-        return jnp.concatenate([data.qpos[1:], qvel]).astype(jnp.float32)
+    def _obs(self, data, xp=jnp) -> jax.Array:
+        qvel = xp.clip(data.qvel, -10.0, 10.0) if self.clip_qvel_obs else data.qvel
+        return xp.concatenate([data.qpos[..., 1:], qvel], axis=-1)
 
-    def _is_healthy(self, data: mjx.Data) -> jax.Array:
-        """bool (), gymnasium's ``is_healthy`` (always true for envs that never terminate)."""
-        return jnp.ones((), jnp.bool_)
+    def _is_healthy(self, data, xp=jnp) -> jax.Array:
+        """bool (...), gymnasium's ``is_healthy`` (always true for envs that never terminate)."""
+        return xp.ones(data.qpos.shape[:-1], xp.bool_)
 
     def _reward(
-        self, data_before: mjx.Data, data: mjx.Data, ctrl: jax.Array, params: MjxParams
+        self, data_before, data, ctrl: jax.Array, params: MjxParams, xp=jnp
     ) -> tuple[jax.Array, jax.Array, dict[str, jax.Array]]:
         del params
-        x_velocity = (data.qpos[0] - data_before.qpos[0]) / self.dt
+        x_velocity = (data.qpos[..., 0] - data_before.qpos[..., 0]) / self.dt
         forward_reward = self.forward_reward_weight * x_velocity
-        ctrl_cost = self.ctrl_cost_weight * jnp.sum(jnp.square(ctrl))
-        healthy = self._is_healthy(data)
+        ctrl_cost = self.ctrl_cost_weight * xp.sum(xp.square(ctrl), axis=-1)
+        healthy = self._is_healthy(data, xp)
         healthy_reward = self.healthy_reward * healthy
         reward = forward_reward + healthy_reward - ctrl_cost
         info = {
-            "x_position": data.qpos[0],
+            "x_position": data.qpos[..., 0],
             "x_velocity": x_velocity,
             "reward_forward": forward_reward,
             "reward_ctrl": -ctrl_cost,
             "reward_survive": healthy_reward,
         }
-        return reward, jnp.logical_not(healthy), info
+        return reward, xp.logical_not(healthy), info
 
 
 class Hopper(_Locomotion):
@@ -390,10 +409,10 @@ class Hopper(_Locomotion):
     xml_file = "hopper.xml"
     frame_skip = 4
 
-    def _is_healthy(self, data: mjx.Data) -> jax.Array:
-        z, angle = data.qpos[1], data.qpos[2]
-        state = jnp.concatenate([data.qpos[2:], data.qvel])
-        healthy_state = jnp.all((state > -100.0) & (state < 100.0))
+    def _is_healthy(self, data, xp=jnp) -> jax.Array:
+        z, angle = data.qpos[..., 1], data.qpos[..., 2]
+        state = xp.concatenate([data.qpos[..., 2:], data.qvel], axis=-1)
+        healthy_state = xp.all((state > -100.0) & (state < 100.0), axis=-1)
         return healthy_state & (z > 0.7) & (angle > -0.2) & (angle < 0.2)
 
 
@@ -411,8 +430,8 @@ class Walker2d(_Locomotion):
     xml_file = "walker2d_v5.xml"
     frame_skip = 4
 
-    def _is_healthy(self, data: mjx.Data) -> jax.Array:
-        z, angle = data.qpos[1], data.qpos[2]
+    def _is_healthy(self, data, xp=jnp) -> jax.Array:
+        z, angle = data.qpos[..., 1], data.qpos[..., 2]
         return (z > 0.8) & (z < 2.0) & (angle > -1.0) & (angle < 1.0)
 
 
@@ -435,9 +454,9 @@ class HalfCheetah(_Locomotion):
     clip_qvel_obs = False
 
     def _reward(
-        self, data_before: mjx.Data, data: mjx.Data, ctrl: jax.Array, params: MjxParams
+        self, data_before, data, ctrl: jax.Array, params: MjxParams, xp=jnp
     ) -> tuple[jax.Array, jax.Array, dict[str, jax.Array]]:
-        reward, terminated, info = super()._reward(data_before, data, ctrl, params)
+        reward, terminated, info = super()._reward(data_before, data, ctrl, params, xp)
         del info["reward_survive"]  # HalfCheetah-v5 has no survival term
         return reward, terminated, info
 
@@ -481,18 +500,18 @@ class HalfCheetahVel(HalfCheetah):
         )
 
     def _reward(
-        self, data_before: mjx.Data, data: mjx.Data, ctrl: jax.Array, params: CheetahVelParams
+        self, data_before, data, ctrl: jax.Array, params: CheetahVelParams, xp=jnp
     ) -> tuple[jax.Array, jax.Array, dict[str, jax.Array]]:
-        x_velocity = (data.qpos[0] - data_before.qpos[0]) / self.dt
-        forward_reward = -jnp.abs(x_velocity - params.target_velocity)
-        ctrl_cost = self.ctrl_cost_weight * jnp.sum(jnp.square(ctrl))
+        x_velocity = (data.qpos[..., 0] - data_before.qpos[..., 0]) / self.dt
+        forward_reward = -xp.abs(x_velocity - params.target_velocity)
+        ctrl_cost = self.ctrl_cost_weight * xp.sum(xp.square(ctrl), axis=-1)
         info = {
-            "x_position": data.qpos[0],
+            "x_position": data.qpos[..., 0],
             "x_velocity": x_velocity,
             "reward_forward": forward_reward,
             "reward_ctrl": -ctrl_cost,
         }
-        return forward_reward - ctrl_cost, jnp.zeros((), jnp.bool_), info
+        return forward_reward - ctrl_cost, xp.zeros(x_velocity.shape, xp.bool_), info
 
 
 # --------------------------------------------------------------------------------------------
@@ -531,27 +550,28 @@ class InvertedDoublePendulum(MjxEnv):
         )
         return qpos, qvel
 
-    def _obs(self, data: mjx.Data) -> jax.Array:
-        return jnp.concatenate(
+    def _obs(self, data, xp=jnp) -> jax.Array:
+        return xp.concatenate(
             [
-                data.qpos[:1],
-                jnp.sin(data.qpos[1:]),
-                jnp.cos(data.qpos[1:]),
-                jnp.clip(data.qvel, -10.0, 10.0),
-                jnp.clip(data.qfrc_constraint, -10.0, 10.0)[:1],
-            ]
-        ).astype(jnp.float32)
+                data.qpos[..., :1],
+                xp.sin(data.qpos[..., 1:]),
+                xp.cos(data.qpos[..., 1:]),
+                xp.clip(data.qvel, -10.0, 10.0),
+                xp.clip(data.qfrc_constraint, -10.0, 10.0)[..., :1],
+            ],
+            axis=-1,
+        )
 
     def _reward(
-        self, data_before: mjx.Data, data: mjx.Data, ctrl: jax.Array, params: MjxParams
+        self, data_before, data, ctrl: jax.Array, params: MjxParams, xp=jnp
     ) -> tuple[jax.Array, jax.Array, dict[str, jax.Array]]:
         del data_before, ctrl, params
-        x, y = data.site_xpos[0, 0], data.site_xpos[0, 2]
+        x, y = data.site_xpos[..., 0, 0], data.site_xpos[..., 0, 2]
         terminated = y <= 1.0
-        v1, v2 = data.qvel[1], data.qvel[2]
+        v1, v2 = data.qvel[..., 1], data.qvel[..., 2]
         dist_penalty = 0.01 * x**2 + (y - 2.0) ** 2
         vel_penalty = 1e-3 * v1**2 + 5e-3 * v2**2
-        alive_bonus = self.healthy_reward * jnp.logical_not(terminated)
+        alive_bonus = self.healthy_reward * xp.logical_not(terminated)
         reward = alive_bonus - dist_penalty - vel_penalty
         info = {
             "reward_survive": alive_bonus,
@@ -631,14 +651,14 @@ class InvertedPendulumSwingup(MjxEnv):
         model.jnt_solimp[slider] = [0.9999, 0.9999, 0.001, 0.5, 2.0]
         return model
 
-    def _limit_solref(self, depth):
+    def _limit_solref(self, depth, xp=jnp):
         """The slider limit's ``solref`` (direct ``(-k, -b)``) when the cart is ``depth`` m beyond
         it (<= 0 inside): ``b = 1/dt`` stops it; ``k = erp/dt^2`` pushes back if shallower than
         ``split_depth``. (k is never exactly 0: MuJoCo reads ``solref[0] == 0`` as unset.)
         """
         dt = self.timestep
-        k = jnp.where(depth < self.split_depth, self.limit_erp / dt**2, 1e-9)
-        return jnp.stack([-k, jnp.full_like(k, -1.0 / dt)])
+        k = xp.where(depth < self.split_depth, self.limit_erp / dt**2, 1e-9)
+        return xp.stack([-k, xp.full_like(k, -1.0 / dt)])
 
     def _action_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         gear = float(self.model.actuator_gear[0, 0])
@@ -650,49 +670,69 @@ class InvertedPendulumSwingup(MjxEnv):
         qpos = jnp.stack([jnp.zeros((), jnp.float32), self.init_angle + u])
         return qpos, jnp.zeros((self.model.nv,), jnp.float32)
 
+    def _bullet_terms(self, qpos, qvel, body_mass, body_inertia, xp=jnp):
+        """What Bullet adds before each step: ``(cart force (3,), pole force (3,), pole y torque,
+        slider solref (2,))`` for one env (``xp``: see ``_obs``).
+
+        Link damping (force at the COM, torque; world frame). Bodies: 1 the cart (slides along
+        x), 2 the pole (turns by theta about y around the cart's origin). The pole's COM sits at
+        ``R_y(theta) @ body_ipos`` from the pivot, so its velocity is ``(x_dot + theta_dot * r_z,
+        0, -theta_dot * r_x)``; the hinge axis is a principal axis, so its angular damping is a
+        y torque with inertia ``body_inertia[pole, 1]``. The limit rule: ``_limit_solref``.
+        """
+        k = self.link_damping
+        x_dot, theta, theta_dot = qvel[0], qpos[1], qvel[1]
+        px, _, pz = self.model.body_ipos[2]
+        c, s = xp.cos(theta), xp.sin(theta)
+        r_x, r_z = c * px + s * pz, -s * px + c * pz
+        zero = xp.zeros_like(x_dot)
+        v_cart = xp.stack([x_dot, zero, zero])
+        v_pole = xp.stack([x_dot + theta_dot * r_z, zero, -theta_dot * r_x])
+
+        def drag(mass, v):
+            return -mass * v * (k + k * xp.sqrt(xp.sum(v * v)))
+
+        torque = -body_inertia[2, 1] * theta_dot * (k + k * xp.abs(theta_dot))
+        depth = xp.abs(qpos[0]) - self.model.jnt_range[0, 1]
+        solref = self._limit_solref(depth, xp)
+        return drag(body_mass[1], v_cart), drag(body_mass[2], v_pole), torque, solref
+
     def _before_substep(
         self, model: mjx.Model, data: mjx.Data, params: MjxParams
     ) -> tuple[mjx.Model, mjx.Data]:
-        """Bullet's limit rule for this step (``_limit_solref``) and link damping as
-        ``xfrc_applied`` (force at the COM, then torque; world frame).
-
-        Bodies: 1 the cart (slides along x), 2 the pole (turns by theta about y around the cart's
-        origin). The pole's COM sits at ``R_y(theta) @ body_ipos`` from the pivot, so its velocity
-        is ``(x_dot + theta_dot * r_z, 0, -theta_dot * r_x)``; the hinge axis is a principal axis,
-        so its angular damping is a y torque with inertia ``body_inertia[pole, 1]``.
-        """
-        k = self.link_damping
-        x_dot, theta, theta_dot = data.qvel[0], data.qpos[1], data.qvel[1]
-        px, _, pz = self.model.body_ipos[2]
-        c, s = jnp.cos(theta), jnp.sin(theta)
-        r_x, r_z = c * px + s * pz, -s * px + c * pz
-        zero = jnp.zeros_like(x_dot)
-        v_cart = jnp.stack([x_dot, zero, zero])
-        v_pole = jnp.stack([x_dot + theta_dot * r_z, zero, -theta_dot * r_x])
-
-        def drag(mass, v):
-            return -mass * v * (k + k * jnp.sqrt(jnp.sum(v * v)))
-
-        torque = -params.body_inertia[2, 1] * theta_dot * (k + k * jnp.abs(theta_dot))
+        """Bullet's link damping as ``xfrc_applied`` and its limit rule as the slider's
+        ``jnt_solref`` for this step (``_bullet_terms``)."""
+        f_cart, f_pole, torque, solref = self._bullet_terms(
+            data.qpos, data.qvel, params.body_mass, params.body_inertia
+        )
         xfrc = jnp.zeros_like(data.xfrc_applied)
-        xfrc = xfrc.at[1, :3].set(drag(params.body_mass[1], v_cart))
-        xfrc = xfrc.at[2, :3].set(drag(params.body_mass[2], v_pole))
-        xfrc = xfrc.at[2, 4].set(torque)
-        depth = jnp.abs(data.qpos[0]) - self.model.jnt_range[0, 1]
-        solref = self._limit_solref(depth).astype(model.jnt_solref.dtype)
+        xfrc = xfrc.at[1, :3].set(f_cart).at[2, :3].set(f_pole).at[2, 4].set(torque)
+        solref = solref.astype(model.jnt_solref.dtype)
         data = data.replace(xfrc_applied=xfrc.astype(data.xfrc_applied.dtype))
         return model.replace(jnt_solref=model.jnt_solref.at[0].set(solref)), data
 
-    def _obs(self, data: mjx.Data) -> jax.Array:
-        x, theta = data.qpos[0], data.qpos[1]
-        x_dot, theta_dot = data.qvel[0], data.qvel[1]
-        return jnp.stack([x, x_dot, jnp.cos(theta), jnp.sin(theta), theta_dot]).astype(jnp.float32)
+    def _native_before_substep(self, model: mujoco.MjModel, data: mujoco.MjData) -> None:
+        """``_before_substep`` for MuJoCo's C engine, in place (``envs/native.py``)."""
+        f_cart, f_pole, torque, solref = self._bullet_terms(
+            data.qpos, data.qvel, model.body_mass, model.body_inertia, np
+        )
+        data.xfrc_applied[:] = 0.0
+        data.xfrc_applied[1, :3] = f_cart
+        data.xfrc_applied[2, :3] = f_pole
+        data.xfrc_applied[2, 4] = torque
+        model.jnt_solref[0] = solref
+
+    def _obs(self, data, xp=jnp) -> jax.Array:
+        x, theta = data.qpos[..., 0], data.qpos[..., 1]
+        x_dot, theta_dot = data.qvel[..., 0], data.qvel[..., 1]
+        return xp.stack([x, x_dot, xp.cos(theta), xp.sin(theta), theta_dot], axis=-1)
 
     def _reward(
-        self, data_before: mjx.Data, data: mjx.Data, ctrl: jax.Array, params: MjxParams
+        self, data_before, data, ctrl: jax.Array, params: MjxParams, xp=jnp
     ) -> tuple[jax.Array, jax.Array, dict[str, jax.Array]]:
         del data_before, ctrl, params
-        return jnp.cos(data.qpos[1]), jnp.zeros((), jnp.bool_), {}
+        theta = data.qpos[..., 1]
+        return xp.cos(theta), xp.zeros(theta.shape, xp.bool_), {}
 
 
 MJX_ENVS: dict[str, type[MjxEnv]] = {

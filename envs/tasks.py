@@ -41,6 +41,7 @@ from envs import box2d
 from envs.base import Environment, PRNGKey
 from envs.box2d import HostEnv
 from envs.classic import CartPole, CartPoleParams
+from envs.physics import with_physics
 
 Params = Any
 Split = Literal["train", "test"]
@@ -395,22 +396,23 @@ def _cartpole_fl_ood() -> TaskFamily:
     return CartPoleForceLengthOOD("cartpole_fl_ood", CartPole(horizon=META_HORIZON), 40, 10)
 
 
-def _mjx_family(name: str, env_name: str) -> Callable[[], TaskFamily]:
-    def factory() -> TaskFamily:
+def _mjx_family(name: str, env_name: str) -> Callable[..., TaskFamily]:
+    def factory(physics: str = "mjx") -> TaskFamily:
         from envs.mjx import MJX_ENVS
 
-        return MjxPhysicsFamily(name, MJX_ENVS[env_name](horizon=META_HORIZON), 40, 10)
+        env = with_physics(MJX_ENVS[env_name](horizon=META_HORIZON), physics)
+        return MjxPhysicsFamily(name, env, 40, 10)
 
     factory.__name__ = f"_{name}"
     return factory
 
 
-def _cheetah_vel_ood() -> TaskFamily:
+def _cheetah_vel_ood(physics: str = "mjx") -> TaskFamily:
     from envs.mjx import HalfCheetahVel
 
     return CheetahVelOOD(
         "cheetah_vel_ood",
-        HalfCheetahVel(horizon=META_HORIZON),
+        with_physics(HalfCheetahVel(horizon=META_HORIZON), physics),
         50,
         15,
         use_next_obs_in_context=False,
@@ -421,7 +423,7 @@ def _lunarlander_params() -> TaskFamily:
     return LunarLanderGravity("lunarlander_params", box2d.lunarlander(horizon=1000), 40, 10)
 
 
-FAMILIES: dict[str, Callable[[], TaskFamily]] = {
+FAMILIES: dict[str, Callable[..., TaskFamily]] = {
     "cartpole_fl_ood": _cartpole_fl_ood,
     "cheetah_vel_ood": _cheetah_vel_ood,
     "hopper_params": _mjx_family("hopper_params", "hopper"),
@@ -430,8 +432,12 @@ FAMILIES: dict[str, Callable[[], TaskFamily]] = {
     "walker2d_params": _mjx_family("walker2d_params", "walker2d"),
 }
 
+# The families simulated by MuJoCo (their factories take ``physics=``, envs.PHYSICS).
+MUJOCO_FAMILIES = ("cheetah_vel_ood", "hopper_params", "invdoublepend_params", "walker2d_params")
+
 __all__ = [
     "FAMILIES",
+    "MUJOCO_FAMILIES",
     "RAND_PARAM_BASES",
     "CartPoleForceLengthOOD",
     "CheetahVelOOD",

@@ -38,18 +38,31 @@ from espl_jax.rollout import Rollout
 from espl_jax.sac import SAC, Metrics, TrainState, task_keys
 
 
-def make_env(name: str):
+def resolve_physics(physics: str) -> str:
+    """The MuJoCo backend ``physics`` names: ``auto`` is MuJoCo's C engine when JAX computes on
+    the CPU (MJX is several times slower there) and MJX on an accelerator."""
+    if physics == "auto":
+        return "native" if jax.default_backend() == "cpu" else "mjx"
+    return physics
+
+
+def make_env(name: str, physics: str = "mjx"):
     """``envs.make`` / ``envs.make_family`` with the unknown-name error turned into a user error.
+
+    Args:
+        name: an env or a task family.
+        physics: the backend of a MuJoCo env or family (``envs.PHYSICS``); others ignore it.
 
     Returns:
         ``(env, family)``: the env to step (for a family: its env with the family's horizon)
         and the ``TaskFamily``, or None for a single-task env.
     """
+    kwargs = {"physics": physics} if name in envs.MUJOCO else {}
     try:
         if envs.is_family(name):
-            family = envs.make_family(name)
+            family = envs.make_family(name, **kwargs)
             return family.env, family
-        return envs.make(name), None
+        return envs.make(name, **kwargs), None
     except ValueError as err:
         raise UserError(str(err)) from None
 
@@ -92,7 +105,7 @@ class Trainer:
         # Concrete arrays (MJX's put_model) even when first asked for inside a jit trace, as
         # ``benchmarks/meta_cost.py`` does: a cached tracer would leak into later traces.
         with jax.ensure_compile_time_eval():
-            env, family = make_env(self.config.env)
+            env, family = make_env(self.config.env, resolve_physics(self.config.physics))
         kinds = META_ACTORS if family is not None else SINGLE_TASK_ACTORS
         if self.config.actor not in kinds:
             what = "meta-RL task family" if family is not None else "single-task env"
@@ -110,6 +123,13 @@ class Trainer:
     def family(self):
         """The ``envs.TaskFamily`` of a meta-RL run, else None."""
         return self._env_and_family[1]
+
+    @property
+    def physics(self) -> str | None:
+        """The MuJoCo backend this run steps (``"native"`` or ``"mjx"``), None for other envs."""
+        if self.config.env not in envs.MUJOCO:
+            return None
+        return resolve_physics(self.config.physics)
 
     @property
     def meta(self) -> bool:

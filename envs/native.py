@@ -1,0 +1,320 @@
+"""MuJoCo tasks stepped by MuJoCo's C engine on the host: the fast physics on a CPU.
+
+``NativeEnv(task)`` is a functional ``Environment`` over the same task definition as the MJX env
+(``envs/mjx.py``: model, frame skip, reset distribution, observation, reward, termination,
+params), so collection, evaluation and PEARL's protocol (``espl_jax/rollout.py``) run unchanged
+inside the jitted scan. Only the physics leaves XLA: ``step`` is one ``jax.pure_callback`` with
+``vmap_method="broadcast_all"``, so a vmapped batch (seeds × tasks × episodes) reaches the host
+as one call per env step, which loops ``mj_step(model, data, nstep=frame_skip)`` over the lanes.
+(On 2 cores that loop matched ``mujoco.rollout``'s thread pool and ``mjbatch`` at batch 1-40:
+``benchmarks/env_throughput.py --backends``; it needs no extra dependency.)
+
+The callback is pure: the whole simulator state lives in the JAX state, so checkpoints hold it
+and a resumed run continues bit for bit. MuJoCo computes in float64 and JAX holds float32 (x64
+off), so ``NativeState`` keeps each float64 as its two 32-bit words (``uint32 (..., 2)``):
+``qpos``, ``qvel``, ``act``, ``qacc_warmstart`` and ``time``, everything ``mj_step`` reads of
+these models' data. One env step from a state equals gymnasium's continuous stepping bit for bit
+(``tests/test_envs_native.py``).
+
+Params are the MJX env's (``MjxParams``, float32). A task's params become a cached ``MjModel``
+copy with the fields written in; an element equal to the float32 rounding of the model's own
+value keeps the model's float64 value, so the default params give gymnasium's model exactly and
+a family's task (default × multiplier, in float32) gives what MJX simulates, in float64.
+"""
+
+from __future__ import annotations
+
+import copy
+import threading
+from types import SimpleNamespace
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from flax import struct
+
+from envs.base import Environment, PRNGKey, StepOutput, time_limit
+from envs.mjx import MjxEnv, MjxParams
+
+# The MjxParams fields that are model fields (a family's params may carry task terms too, such
+# as cheetah's target velocity, which only the reward reads).
+MODEL_FIELDS = tuple(MjxParams.__dataclass_fields__)
+HOOK_FIELDS = ("qpos", "qvel", "qfrc_constraint", "site_xpos")  # what obs and reward read
+MAX_CACHED_MODELS = 512  # a run has at most a few hundred distinct tasks
+
+
+@struct.dataclass
+class NativeState:
+    """The simulator state of one env.
+
+    Attributes:
+        physics: uint32 (n, 2), the float64 vector ``[time, qpos, qvel, act, qacc_warmstart]``
+            as two 32-bit words per value (``qacc_warmstart`` is the solver's first guess for
+            the next step: without it a restored state would not continue bit for bit).
+        t: int32 (), env steps since reset.
+    """
+
+    physics: jax.Array
+    t: jax.Array
+
+
+def float64_words(x: jax.Array) -> jax.Array:
+    """The float64 value of float32 ``x`` as uint32 words (..., 2), little-endian (as numpy's
+    ``x.astype(np.float64).view(np.uint32)``), computed in JAX without x64.
+
+    Every float32 is exactly a float64; subnormals are normalized (float64 has the exponent
+    range), zero keeps its sign, inf and NaN stay inf and NaN.
+    """
+    b = jax.lax.bitcast_convert_type(jnp.asarray(x, jnp.float32), jnp.uint32)
+    sign = b >> 31
+    exp = (b >> 23) & 0xFF
+    mant = b & 0x7FFFFF
+    # a subnormal's leading 1 moves to bit 23 (shift s); its exponent is then -126 - s
+    shift = jax.lax.clz(mant) - 8
+    sub_mant = (mant << shift.astype(jnp.uint32)) & 0x7FFFFF
+    exp64 = jnp.where(
+        exp == 0xFF,
+        jnp.uint32(0x7FF),
+        jnp.where(exp == 0, jnp.where(mant == 0, 0, 897 - shift), exp + 896),
+    ).astype(jnp.uint32)
+    mant = jnp.where((exp == 0) & (mant != 0), sub_mant, mant)
+    hi = (sign << 31) | (exp64 << 20) | (mant >> 3)
+    lo = (mant & 7) << 29
+    return jnp.stack([lo, hi], axis=-1)
+
+
+def to_words(x: np.ndarray) -> np.ndarray:
+    """float64 (...,) -> uint32 (..., 2) (numpy, the host side of ``float64_words``)."""
+    x = np.ascontiguousarray(x, np.float64)
+    return x.view(np.uint32).reshape(*x.shape, 2)
+
+
+def from_words(w: np.ndarray) -> np.ndarray:
+    """uint32 (..., 2) -> float64 (...,)."""
+    return np.ascontiguousarray(w, np.uint32).view(np.float64)[..., 0]
+
+
+class NativeEnv(Environment):
+    """A MuJoCo task of ``envs/mjx.py`` stepped by MuJoCo's C engine (module docstring).
+
+    Host calls exchange few, flat arrays (each array a callback passes costs ~20 us): the
+    state's words, the action, the params as one float32 row, and back the new words and one
+    float32 row ``[obs, reward, terminated, info...]``.
+
+    Attributes:
+        task: the MJX env whose task this is (model, hooks; its MJX model is never built).
+    """
+
+    def __init__(self, task: MjxEnv):
+        self.task = task
+        self.model = m = task.model
+        self.name, self.horizon, self.dt = task.name, task.horizon, task.dt
+        self.obs_dim, self.action_dim = task.obs_dim, task.action_dim
+        self.action_low, self.action_high = task.action_low, task.action_high
+        sizes = {"time": 1, "qpos": m.nq, "qvel": m.nv, "act": m.na, "warmstart": m.nv}
+        ends = np.cumsum(list(sizes.values()))
+        self._slices = {k: slice(e - n, e) for (k, n), e in zip(sizes.items(), ends, strict=True)}
+        self.state_size = int(ends[-1])
+        default = self.default_params
+        self._param_shapes = {
+            f: np.shape(getattr(default, f)) for f in default.__dataclass_fields__
+        }
+        # One MjData and one model cache, used under a lock: XLA may call back from several
+        # threads (one per device), and its callback threads come and go, so MuJoCo objects
+        # must not live in thread-locals (their teardown outside Python crashes).
+        self._lock = threading.Lock()
+        self._data = mujoco.MjData(m)
+        self._cache: dict[bytes, mujoco.MjModel] = {}
+        # the reward's info keys, from one reward of the model's own state on the host
+        view = self._hook_view(self._data, 1)
+        lanes = self._lane_params(self.flat_params(default)[None])
+        _, _, info = task._reward(view, view, np.zeros((1, m.nu)), lanes, np)
+        self._info_keys = tuple(info)
+
+    @property
+    def default_params(self) -> MjxParams:
+        return self.task.default_params
+
+    def __repr__(self) -> str:
+        return f"NativeEnv({self.task!r})"
+
+    # Params --------------------------------------------------------------------------------
+
+    def flat_params(self, params: MjxParams) -> jax.Array:
+        """Every field of the params, float32, raveled in field order into one row (P,)."""
+        leaves = [
+            jnp.ravel(jnp.asarray(getattr(params, f), jnp.float32)) for f in self._param_shapes
+        ]
+        return jnp.concatenate(leaves)
+
+    def _lane_params(self, rows: np.ndarray) -> SimpleNamespace:
+        """Rows [n, P] back into fields [n, *shape] (for the task hooks)."""
+        out, offset = {}, 0
+        for field, shape in self._param_shapes.items():
+            size = int(np.prod(shape))
+            out[field] = rows[:, offset : offset + size].reshape(len(rows), *shape)
+            offset += size
+        return SimpleNamespace(**out)
+
+    def host_model(self, row: np.ndarray) -> mujoco.MjModel:
+        """The ``MjModel`` of one task (its ``flat_params`` row), cached; call under the lock.
+
+        Each model field is written in; elements equal to the float32 rounding of the model's
+        own value keep the float64 value (module docstring).
+        """
+        key = row.tobytes()
+        model = self._cache.get(key)
+        if model is None:
+            if len(self._cache) >= MAX_CACHED_MODELS:
+                self._cache.clear()
+            model = copy.copy(self.model)
+            fields = self._lane_params(row[None])
+            for field in MODEL_FIELDS:
+                own = getattr(self.model, field)
+                given = getattr(fields, field)[0]
+                same = given == own.astype(np.float32)
+                getattr(model, field)[:] = np.where(same, own, given.astype(np.float64))
+            self._cache[key] = model
+        return model
+
+    # Host side ----------------------------------------------------------------------------
+
+    def _load(self, data: mujoco.MjData, state: np.ndarray) -> None:
+        """One float64 state vector into ``data``."""
+        sl = self._slices
+        data.time = state[0]
+        data.qpos[:] = state[sl["qpos"]]
+        data.qvel[:] = state[sl["qvel"]]
+        data.act[:] = state[sl["act"]]
+        data.qacc_warmstart[:] = state[sl["warmstart"]]
+
+    def _save(self, data: mujoco.MjData, state: np.ndarray) -> None:
+        sl = self._slices
+        state[0] = data.time
+        state[sl["qpos"]] = data.qpos
+        state[sl["qvel"]] = data.qvel
+        state[sl["act"]] = data.act
+        state[sl["warmstart"]] = data.qacc_warmstart
+
+    @staticmethod
+    def _hook_view(data: mujoco.MjData, n: int) -> SimpleNamespace:
+        """Empty float64 arrays [n, ...] for the data fields the task hooks read."""
+        return SimpleNamespace(**{k: np.zeros((n, *getattr(data, k).shape)) for k in HOOK_FIELDS})
+
+    def host_step(self, words: np.ndarray, ctrl: np.ndarray, rows: np.ndarray):
+        """Every lane's step, batch axes leading: (new words, float32 [obs, reward, terminated,
+        info...]); the callback behind ``step``."""
+        words, ctrl, rows = np.asarray(words), np.asarray(ctrl), np.asarray(rows)
+        batch = ctrl.shape[:-1]
+        state = from_words(words).reshape(-1, self.state_size)
+        new, values = self.host_step64(
+            state, ctrl.reshape(len(state), -1), rows.reshape(len(state), -1)
+        )
+        return to_words(new).reshape(words.shape), values.astype(np.float32).reshape(*batch, -1)
+
+    def host_step64(
+        self, state: np.ndarray, ctrl: np.ndarray, rows: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``host_step`` in float64 for lanes [n]: states [n, state_size] (``NativeState``'s
+        vector), ctrl [n, nu] in env units, params rows [n, P] -> (new states, values [n, V])."""
+        n = len(state)
+        ctrl = np.asarray(ctrl, np.float64)
+        task = self.task
+        substep = getattr(task, "_native_before_substep", None)
+        with self._lock:
+            data = self._data
+            after = self._hook_view(data, n)
+            new = np.empty_like(state)
+            for i in range(n):
+                model = self.host_model(rows[i])
+                self._load(data, state[i])
+                data.ctrl[:] = ctrl[i]
+                if substep is None:
+                    mujoco.mj_step(model, data, nstep=task.frame_skip)
+                else:
+                    for _ in range(task.frame_skip):
+                        substep(model, data)
+                        mujoco.mj_step(model, data)
+                self._save(data, new[i])
+                for name in HOOK_FIELDS:
+                    getattr(after, name)[i] = getattr(data, name)
+        before = SimpleNamespace(qpos=state[:, self._slices["qpos"]])
+        lanes = self._lane_params(rows)
+        obs = task._obs(after, np)
+        reward, terminated, info = task._reward(before, after, ctrl, lanes, np)
+        terms = [reward, terminated, *(info[k] for k in self._info_keys)]
+        return new, np.concatenate([obs, np.stack(terms, axis=-1)], axis=-1)
+
+    def host_forward_obs(self, words: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """Every lane's observation after ``mj_forward`` (for tasks whose first observation
+        needs derived quantities, as gymnasium's ``set_state`` computes them)."""
+        words, rows = np.asarray(words), np.asarray(rows)
+        batch = words.shape[:-2]
+        n = int(np.prod(batch))
+        state = from_words(words).reshape(n, self.state_size)
+        rows = rows.reshape(n, -1)
+        with self._lock:
+            data = self._data
+            fields = self._hook_view(data, n)
+            for i in range(n):
+                model = self.host_model(rows[i])
+                self._load(data, state[i])
+                mujoco.mj_forward(model, data)
+                for name in HOOK_FIELDS:
+                    getattr(fields, name)[i] = getattr(data, name)
+        obs = self.task._obs(fields, np)
+        return np.asarray(obs, np.float32).reshape(*batch, self.obs_dim)
+
+    # JAX side ------------------------------------------------------------------------------
+
+    def reset(self, key: PRNGKey, params: MjxParams) -> tuple[jax.Array, NativeState]:
+        """The MJX env's reset distribution (``_init_qpos_qvel``), zero warm start and time.
+
+        The observation is computed in JAX from ``(qpos, qvel)`` (exact: they are float32
+        draws), or on the host after ``mj_forward`` for tasks that need derived quantities
+        (``forward_on_reset``), so the auto-reset of every collection step costs no host call
+        for the locomotion tasks.
+        """
+        qpos, qvel = self.task._init_qpos_qvel(key)
+        m = self.model
+        zeros = jnp.zeros((m.na + m.nv,), jnp.float32)
+        physics = float64_words(jnp.concatenate([jnp.zeros((1,)), qpos, qvel, zeros]))
+        state = NativeState(physics=physics, t=jnp.zeros((), jnp.int32))
+        if self.task.forward_on_reset:
+            obs = jax.pure_callback(
+                self.host_forward_obs,
+                jax.ShapeDtypeStruct((self.obs_dim,), jnp.float32),
+                physics,
+                self.flat_params(params),
+                vmap_method="broadcast_all",
+            )
+        else:
+            obs = self.task._obs(SimpleNamespace(qpos=qpos, qvel=qvel)).astype(jnp.float32)
+        return obs, state
+
+    def step(
+        self, key: PRNGKey, state: NativeState, action: jax.Array, params: MjxParams
+    ) -> StepOutput:
+        """``frame_skip`` ``mj_step`` calls on the host with the scaled action as ``ctrl``
+        (gymnasium's ``do_simulation``); obs, reward and termination from the task's hooks in
+        float64, returned as float32."""
+        del key
+        n_values = self.obs_dim + 2 + len(self._info_keys)
+        physics, values = jax.pure_callback(
+            self.host_step,
+            (
+                jax.ShapeDtypeStruct(state.physics.shape, jnp.uint32),
+                jax.ShapeDtypeStruct((n_values,), jnp.float32),
+            ),
+            state.physics,
+            self.scale_action(action),
+            self.flat_params(params),
+            vmap_method="broadcast_all",
+        )
+        obs, reward = values[: self.obs_dim], values[self.obs_dim]
+        terminated = values[self.obs_dim + 1] > 0.5
+        info = dict(zip(self._info_keys, values[self.obs_dim + 2 :], strict=True))
+        t = state.t + 1
+        new = NativeState(physics=physics, t=t)
+        return obs, new, reward, terminated, time_limit(t, self.horizon, terminated), info
