@@ -42,7 +42,7 @@ import envs
 from espl_jax import config as config_lib
 from espl_jax import expression as ex
 from espl_jax import run
-from espl_jax.cli import run_main
+from espl_jax.cli import check_path, run_main
 from espl_jax.config import UserError
 
 # |λ| within this of 1 is a marginal mode. The Jacobian is computed in float32 (the envs' dtype),
@@ -388,6 +388,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if not args.tol > 0:
         raise UserError("--tol must be positive")
+    check_path(args.run_dir, "RUN_DIR")
     run_dir = Path(args.run_dir)
     if not (run_dir / "config.yaml").is_file():
         raise UserError(f"{run_dir} is not a run directory (no config.yaml)")

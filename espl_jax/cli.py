@@ -25,6 +25,19 @@ def run_main(main: Callable[[list[str] | None], int], argv: list[str] | None = N
         return 130
 
 
+def check_path(value: str | None, name: str) -> None:
+    """Refuse an empty path on the command line (None: not given, fine).
+
+    ``Path("")`` is ``.``, the current directory, which the user did not name: ``--out ''``
+    would write the run there, ``--resume ''`` resume whatever run it holds.
+
+    Raises:
+        UserError: ``value`` is empty.
+    """
+    if value == "":
+        raise UserError(f"{name} is empty: it names no file or directory")
+
+
 def use_compilation_cache() -> str | None:
     """Keep XLA's compiled programs on disk between runs, unless the user chose otherwise.
 

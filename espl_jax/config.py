@@ -7,6 +7,7 @@ per-environment ones (Table 6) and a budget that fits a laptop CPU.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import typing
 from collections.abc import Mapping
@@ -41,7 +42,7 @@ class Config:
     seed: int = 0
     seeds: int = 1  # independent runs, vmapped in one computation; the best formula is kept
     # Devices the seed axis is sharded over (jax.sharding, one mesh axis "seeds"): 0 = as many
-    # of jax.devices() as divide ``seeds``; 1 = one device.
+    # of jax.devices() as divide ``seeds``; N > 0 = N devices, which must divide ``seeds``.
     devices: int = 0
 
     # Budget (Algorithm 1): iterations of (collect, update).
@@ -212,6 +213,10 @@ _NON_NEGATIVE_INT = (
 )
 
 
+# JAX's integers are int32 by default: a count, size or seed beyond them cannot be honoured.
+_INT_LIMIT = 2**31
+
+
 def _validate(c: Config) -> None:
     for f in fields(c):
         value = getattr(c, f.name)
@@ -220,17 +225,21 @@ def _validate(c: Config) -> None:
             ok = (
                 isinstance(value, tuple)
                 and value
-                and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value)
+                and all(
+                    isinstance(v, int) and not isinstance(v, bool) and 0 < v < _INT_LIMIT
+                    for v in value
+                )
             )
             if not ok:
                 raise UserError(
-                    f"config: {f.name} must be a list of positive integers, got {value!r}"
+                    f"config: {f.name} must be a list of positive integers below 2**31, "
+                    f"got {value!r}"
                 )
         elif expected is float:
             if isinstance(value, bool) or not isinstance(value, int | float):
                 raise UserError(f"config: {f.name} must be a number, got {value!r}")
             # Every check below is written so that NaN fails it, but say what is wrong.
-            if not math.isfinite(value):
+            if not _finite(value):
                 raise UserError(f"config: {f.name} must be a finite number, got {value!r}")
         elif expected is int:
             if isinstance(value, bool) or not isinstance(value, int):
@@ -243,8 +252,11 @@ def _validate(c: Config) -> None:
                 f"config: {name} must be one of {', '.join(choices)}, got {getattr(c, name)!r}"
             )
     for name in ("seed", "task_seed"):
-        if not 0 <= getattr(c, name) < 2**31:
+        if not 0 <= getattr(c, name) < _INT_LIMIT:
             raise UserError(f"config: {name} must be in [0, 2**31), got {getattr(c, name)!r}")
+    for f in fields(c):
+        if _field_type(f) is int and not getattr(c, f.name) < _INT_LIMIT:
+            raise UserError(f"config: {f.name} must be below 2**31, got {getattr(c, f.name)!r}")
     for name in _NON_NEGATIVE_INT:
         if not getattr(c, name) >= 0:
             raise UserError(f"config: {name} must be >= 0, got {getattr(c, name)!r}")
@@ -268,6 +280,11 @@ def _validate(c: Config) -> None:
     for name in _NON_NEGATIVE_FLOAT:
         if not getattr(c, name) >= 0:
             raise UserError(f"config: {name} must be >= 0, got {getattr(c, name)!r}")
+    if c.devices and c.seeds % c.devices:  # else the mesh would quietly use fewer devices
+        raise UserError(
+            f"config: devices ({c.devices}) must divide seeds ({c.seeds}): each device runs "
+            "whole seeds (devices 0 takes as many as divide seeds)"
+        )
     if c.buffer_size < c.steps_per_iteration:
         raise UserError(
             f"config: buffer_size ({c.buffer_size}) must be at least steps_per_iteration "
@@ -275,9 +292,23 @@ def _validate(c: Config) -> None:
         )
 
 
+def _finite(value: int | float) -> bool:
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # an integer beyond the floats' range
+        return False
+
+
 def _field_type(f: dataclasses.Field) -> type:
-    hint = typing.get_type_hints(Config)[f.name]
+    hint = _type_hints()[f.name]
     return tuple if typing.get_origin(hint) is tuple else hint
+
+
+@functools.cache
+def _type_hints() -> dict[str, Any]:
+    """Config's resolved annotations, once: resolving them takes ~1 ms, and every Config built
+    validates each of its ~60 fields."""
+    return typing.get_type_hints(Config)
 
 
 def _coerce(value: Any, expected: type) -> Any:
@@ -286,7 +317,10 @@ def _coerce(value: Any, expected: type) -> Any:
     if expected is tuple and isinstance(value, list):
         return tuple(value)
     if expected is float and isinstance(value, int) and not isinstance(value, bool):
-        return float(value)
+        try:
+            return float(value)
+        except OverflowError:
+            return value
     if expected is float and isinstance(value, str):
         try:
             return float(value)
@@ -298,27 +332,53 @@ def _coerce(value: Any, expected: type) -> Any:
 def from_mapping(values: Mapping[str, Any], base: Config | None = None) -> Config:
     """Build a Config from a mapping, overriding ``base`` (defaults if None)."""
     known = {f.name: f for f in fields(Config)}
-    unknown = sorted(set(values) - set(known))
+    unknown = sorted(str(k) for k in set(values) - set(known))  # YAML keys may be 1, null, …
     if unknown:
         raise UserError(
             f"config: unknown key(s) {', '.join(unknown)}; known keys: {', '.join(sorted(known))}"
         )
     coerced = {k: _coerce(v, _field_type(known[k])) for k, v in values.items()}
-    return dataclasses.replace(base or Config(), **coerced)
+    return dataclasses.replace(Config() if base is None else base, **coerced)
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, but a mapping that gives a key twice is an error: PyYAML keeps the
+    last value and drops the others without a word."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen = set()
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue  # ``<<: *anchor``: keys given beside it override the merged ones
+            key = self.construct_object(key_node, deep=deep)
+            if not isinstance(key, typing.Hashable):
+                continue  # PyYAML refuses it below, with its own message
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"key {key!r} is given twice", key_node.start_mark
+                )
+            seen.add(key)
+        return super().construct_mapping(node, deep)
 
 
 def load_yaml(path: str | Path) -> dict[str, Any]:
-    """Read a YAML mapping with readable errors for missing, unreadable or malformed files."""
+    """Read a YAML mapping with readable errors for missing, unreadable or malformed files.
+
+    An empty file (or one of comments only) is an empty mapping; a file that holds a null, a
+    list or a scalar is refused, as is a key given twice.
+    """
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
+        text = path.read_text()
+        data = yaml.load(text, Loader=_StrictLoader)
+        empty = data is None and yaml.compose(text, Loader=yaml.SafeLoader) is None
     except FileNotFoundError:
         raise UserError(f"config file not found: {path}") from None
     except (OSError, UnicodeDecodeError) as err:
         raise UserError(f"cannot read config file {path}: {err}") from None
     except yaml.YAMLError as err:
         raise UserError(f"cannot read config file {path}: {_yaml_problem(err)}") from None
-    if data is None:
+    if empty:
         return {}
     if not isinstance(data, dict):
         raise UserError(f"config file {path} must hold a mapping of keys to values")
@@ -343,7 +403,8 @@ def resolve(
     """The run's config: defaults < ``configs/ENV.yaml`` < ``config_file`` < ``overrides``.
 
     The env comes from ``env`` (the ``--env`` flag), else from the file's ``env`` key, else
-    ``DEFAULT_ENV``; a flag and a file that name different envs are an error. Every known env
+    ``DEFAULT_ENV`` (only when neither is given: an empty name is an unknown env, not a request
+    for the default); a flag and a file that name different envs are an error. Every known env
     ships a config: a missing one is an error, never a silent fall-back to the defaults (which are
     the paper's common hyperparameters, not a laptop budget). ``overrides`` set to None are unset.
 
@@ -351,16 +412,17 @@ def resolve(
         UserError: unknown env, conflicting envs, missing or malformed files, bad values.
     """
     file_values = load_yaml(config_file) if config_file is not None else {}
+    # A key the file gives is a value, null and "" included: only an absent key means "not set".
     file_env = file_values.get("env")
-    if file_env is not None and not isinstance(file_env, str):
+    if "env" in file_values and not isinstance(file_env, str):
         raise UserError(f"config: env must be a string, got {file_env!r} in {config_file}")
+    name = next((n for n in (env, file_env) if n is not None), DEFAULT_ENV)
+    _check_known_env(name)
     if env is not None and file_env is not None and env != file_env:
         raise UserError(
             f"--env {env} and the env of {config_file} ({file_env}) disagree; "
             "give one of them, or make them the same"
         )
-    name = env or file_env or DEFAULT_ENV
-    _check_known_env(name)
     default_file = env_config_path(name)
     if not default_file.is_file():
         raise UserError(

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import envs
 from espl_jax import evaluation, run
-from espl_jax.cli import run_main
+from espl_jax.cli import check_path, run_main
 from espl_jax.config import UserError
 
 
@@ -25,6 +25,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.episodes <= 0:
         raise UserError("--episodes must be positive")
+    if args.seed < 0:  # gymnasium refuses negative seeds with a traceback
+        raise UserError(f"--seed must be >= 0, got {args.seed}")
+    check_path(args.run_dir, "RUN_DIR")
     run_dir = Path(args.run_dir)
     config = run.saved_config(run_dir)
     record = run.read_eval(run_dir) or {}  # read first: a corrupt eval.json is never overwritten

@@ -19,8 +19,8 @@ import numpy as np
 from espl_jax import expression as ex
 from espl_jax import halloffame as hof
 from espl_jax import run
-from espl_jax.cli import run_main
-from espl_jax.config import UserError
+from espl_jax.cli import check_path, run_main
+from espl_jax.config import Config, UserError
 
 FORMATS = ("text", "latex", "python", "c")
 PICK_DIR = "picked"
@@ -51,13 +51,15 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
+    check_path(args.run_dir, "RUN_DIR")
+    check_path(args.output, "--output")  # '' would print (or write into RUN/picked/) instead
     config = run.saved_config(args.run_dir)
     if config.actor != "symbolic":
         raise UserError(
             f"{args.run_dir} trained an {config.actor.upper()} actor: there is no formula to export"
         )
     if args.pick:
-        return pick(args)
+        return pick(args, config)
     trainer, state, _ = run.load_run(args.run_dir)
     if trainer.meta and args.task is None:
         raise UserError(
@@ -104,13 +106,13 @@ def write(exprs: list, env, fmt: str, output: str | None) -> None:
         "python": lambda: ex.to_python(exprs, env.obs_dim, env.action_low, env.action_high),
         "c": lambda: ex.to_c(exprs, env.obs_dim, env.action_low, env.action_high),
     }[fmt]()
-    if output:
+    if output is not None:
         Path(output).write_text(text if text.endswith("\n") else text + "\n")
     else:
         print(text)
 
 
-def pick(args: argparse.Namespace) -> int:
+def pick(args: argparse.Namespace, config: Config) -> int:
     how = args.pick[0]
     within = None
     if how == "shortest-within":
@@ -127,11 +129,13 @@ def pick(args: argparse.Namespace) -> int:
         raise UserError(f"{args.run_dir} has no hall of fame ({hof.FORMULAS_FILE} is missing)")
     rows = hof.read(path)
     if args.seed is not None:
+        if not 0 <= args.seed < config.seeds:
+            raise UserError(f"--seed must be in [0, {config.seeds - 1}]")
         rows = [r for r in rows if r["seed"] == args.seed]
     chosen = hof.pick(rows, how, within)
     exprs = hof.expressions(chosen)
-    env = run.Trainer(run.saved_config(args.run_dir)).env
-    out = Path(args.output) if args.output else Path(args.run_dir) / PICK_DIR
+    env = run.Trainer(config).env
+    out = Path(args.output) if args.output is not None else Path(args.run_dir) / PICK_DIR
     out.mkdir(parents=True, exist_ok=True)
     (out / run.EXPRESSION_FILE).write_text(ex.to_text(exprs) + "\n")
     source = ex.to_python(exprs, env.obs_dim, env.action_low, env.action_high)

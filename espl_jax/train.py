@@ -9,8 +9,8 @@ from pathlib import Path
 
 from espl_jax import config as config_lib
 from espl_jax import run
-from espl_jax.cli import run_main, use_compilation_cache
-from espl_jax.config import UserError
+from espl_jax.cli import check_path, run_main, use_compilation_cache
+from espl_jax.config import Config, UserError
 
 
 def parser() -> argparse.ArgumentParser:
@@ -69,37 +69,20 @@ RUN_DEFINING_FLAGS = ("env", "seeds", "config", "actor", "seed", "out")
 
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
+    check_flags(args)
     if args.distributed:
-        if not (args.out or args.resume):
-            raise UserError("--distributed needs --out (or --resume): one run directory for all")
         start_distributed(args)
-    elif any(x is not None for x in (args.coordinator, args.num_processes, args.process_id)):
-        raise UserError("--coordinator, --num-processes and --process-id need --distributed")
-    if args.resume:
-        given = [f"--{name}" for name in RUN_DEFINING_FLAGS if getattr(args, name) is not None]
-        if given:
-            raise UserError(
-                f"--resume continues a run with its saved config; {', '.join(given)} cannot be "
-                "changed on resume (only --iterations, --devices and --no-progress can)"
-            )
+    config = resolve_config(args)
+    resume = args.resume is not None
+    if resume:
         run_dir = Path(args.resume)
-        config = run.resume_config(run_dir, iterations=args.iterations, devices=args.devices)
+    elif args.out is not None:
+        run_dir = Path(args.out)
     else:
-        config = config_lib.resolve(
-            args.env,
-            args.config,
-            seeds=args.seeds,
-            iterations=args.iterations,
-            actor=args.actor,
-            seed=args.seed,
-            devices=args.devices,
-        )
-        run_dir = Path(args.out) if args.out else run.new_run_dir(config)
+        run_dir = run.new_run_dir(config)
     use_compilation_cache()
     started = time.perf_counter()
-    result = run.train(
-        config, run_dir, resume=bool(args.resume), show_progress=not args.no_progress
-    )
+    result = run.train(config, run_dir, resume=resume, show_progress=not args.no_progress)
     wall = time.perf_counter() - started
     print(f"\nrun directory: {run_dir}")
     for warning in result.get("warnings", []):
@@ -113,6 +96,46 @@ def main(argv: list[str] | None = None) -> int:
         f"trained on {t['episodes']} episodes / {t['env_steps']} env steps; wall time {wall:.0f} s"
     )
     return 0
+
+
+def check_flags(args: argparse.Namespace) -> None:
+    """Refuse flags that cannot be honoured as given, before anything starts.
+
+    An empty path is refused (``cli.check_path``), never read as "not given": ``--out ''``
+    would otherwise fall back to a new ``runs/…`` directory, ``--resume ''`` to a new run.
+    """
+    for flag in ("config", "out", "resume"):
+        check_path(getattr(args, flag), f"--{flag}")
+    if args.coordinator == "":
+        raise UserError("--coordinator is empty: give process 0's HOST:PORT")
+    if args.distributed:
+        if args.out is None and args.resume is None:
+            raise UserError("--distributed needs --out (or --resume): one run directory for all")
+    elif any(x is not None for x in (args.coordinator, args.num_processes, args.process_id)):
+        raise UserError("--coordinator, --num-processes and --process-id need --distributed")
+    if args.resume is not None:
+        given = [f"--{name}" for name in RUN_DEFINING_FLAGS if getattr(args, name) is not None]
+        if given:
+            raise UserError(
+                f"--resume continues a run with its saved config; {', '.join(given)} cannot be "
+                "changed on resume (only --iterations, --devices and --no-progress can)"
+            )
+
+
+def resolve_config(args: argparse.Namespace) -> Config:
+    """The run's config from flags that passed ``check_flags``: the run's saved one on
+    ``--resume``, else ``config.resolve``'s. Writes nothing."""
+    if args.resume is not None:
+        return run.resume_config(args.resume, iterations=args.iterations, devices=args.devices)
+    return config_lib.resolve(
+        args.env,
+        args.config,
+        seeds=args.seeds,
+        iterations=args.iterations,
+        actor=args.actor,
+        seed=args.seed,
+        devices=args.devices,
+    )
 
 
 def start_distributed(args: argparse.Namespace) -> None:
