@@ -192,7 +192,12 @@ def machine() -> dict:
     )
 
 
-def write_result(path: str, rows: list[dict], argv: list[str] | None) -> None:
+def write_result(
+    path: str,
+    rows: list[dict],
+    argv: list[str] | None,
+    script: str = "benchmarks/env_throughput.py",
+) -> None:
     """The rows as JSON with the command, commit, machine and date that produced them."""
     import sys
 
@@ -200,7 +205,7 @@ def write_result(path: str, rows: list[dict], argv: list[str] | None) -> None:
         ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=False
     ).stdout.strip()
     record = dict(
-        command="python benchmarks/env_throughput.py " + " ".join(argv or sys.argv[1:]),
+        command=f"python {script} " + " ".join(argv or sys.argv[1:]),
         commit=commit or None,
         date=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         machine=machine(),

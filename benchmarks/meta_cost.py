@@ -1,16 +1,22 @@
-"""Where a meta-RL iteration's time goes, per actor kind: collection vs the SAC updates.
+"""Where an iteration's time goes, per actor kind and physics backend: collection vs updates.
 
-For one task family and each ``--actors`` kind, with the family's shipped config, this times (after
-one warm-up call, best of ``--repeats``) the jitted, seed-vmapped pieces of one iteration:
+For an env or task family and each ``--actors`` kind and ``--physics`` backend (MuJoCo tasks),
+with the shipped config, this times (after one warm-up call, best of ``--repeats``) the jitted,
+seed-vmapped pieces of one iteration:
 
-- ``collect``: PEARL's collection (``Trainer.collect_meta``: prior and posterior phases);
+- ``collect``: one iteration's collection (meta-RL: ``Trainer.collect_meta``, PEARL's prior and
+  posterior phases; single task: ``Trainer.collect_single``, ``steps_per_iteration`` steps);
 - ``updates``: ``--updates`` SAC steps (``Trainer.learn`` without collection), from a buffer filled
-  by one warm-up collection, reported per update;
-- ``adapt``: the protocol on the test tasks (``Trainer.compiled_adapt``), once.
+  by one collection, reported per update (the shipped ``updates_per_iteration`` gives the
+  iteration's update time);
+- ``adapt``: meta-RL only, the protocol on the test tasks (``Trainer.compiled_adapt``), once.
 
 Compile times are printed beside (the first call minus a timed one). Prints a markdown table::
 
     python benchmarks/meta_cost.py --env invdoublepend_params --actors symbolic,pearl,hyper
+    python benchmarks/meta_cost.py --env hopper_params --actors symbolic --physics mjx,native
+    python benchmarks/meta_cost.py --env hopper --actors symbolic --physics mjx,native \
+        --json results/iteration_cost_hopper.json
 
 Not part of the test suite (CI never runs ``benchmarks/``).
 """
@@ -21,7 +27,9 @@ import argparse
 import time
 
 import jax
+from env_throughput import write_result
 
+import envs
 from espl_jax import config as config_lib
 from espl_jax.trainer import Trainer
 
@@ -39,18 +47,26 @@ def _timed(fn, *args, repeats: int):
     return first, best, out
 
 
-def measure(env: str, actor: str, updates: int, repeats: int) -> dict:
-    # A short initial collection: it only has to put data in the buffers (whose size, and so the
-    # cost of sampling them, does not depend on how full they are).
-    trainer = Trainer(
-        config_lib.resolve(env=env, actor=actor, updates_per_iteration=updates, initial_steps=200)
-    )
+def measure(env: str, actor: str, updates: int, repeats: int, physics: str = "auto") -> dict:
+    shipped = config_lib.resolve(env=env, actor=actor, physics=physics)
+    overrides = dict(env=env, actor=actor, physics=physics, updates_per_iteration=updates)
+    if envs.is_family(env):
+        # A short initial collection: it only has to put data in the buffers (whose size, and
+        # so the cost of sampling them, does not depend on how full they are).
+        overrides["initial_steps"] = 200
+    trainer = Trainer(config_lib.resolve(**overrides))
     state = trainer.init_seeds()
     state = jax.block_until_ready(trainer.compiled_warmup()(state))
     key = jax.random.PRNGKey(1)
     keys = key[None]
 
-    collect = trainer.over_seeds(lambda s, k: trainer.collect_meta(s, k)[0])
+    def collect_one(s, k):
+        if trainer.meta:
+            return trainer.collect_meta(s, k)[0]
+        _, mask, k_collect, _ = trainer.start_iteration(k, s.actor)
+        return trainer.collect_single(s, mask, k_collect)[0]
+
+    collect = trainer.over_seeds(collect_one)
     c_first, c_best, state = _timed(collect, state, keys, repeats=repeats)
 
     def learn(s, k):
@@ -59,13 +75,18 @@ def measure(env: str, actor: str, updates: int, repeats: int) -> dict:
     learn = trainer.over_seeds(learn)
     u_first, u_best, _ = _timed(learn, state, keys, repeats=repeats)
 
-    test_params = trainer.tasks[1]
-    a_first, a_best, _ = _timed(trainer.compiled_adapt, state, test_params, keys, repeats=1)
+    a_first = a_best = float("nan")
+    if trainer.meta:
+        test_params = trainer.tasks[1]
+        a_first, a_best, _ = _timed(trainer.compiled_adapt, state, test_params, keys, repeats=1)
     return {
+        "env": env,
         "actor": actor,
+        "physics": trainer.physics,
         "collect_s": c_best,
         "collect_compile_s": c_first - c_best,
         "update_ms": 1000 * u_best / updates,
+        "updates_per_iteration": shipped.updates_per_iteration,
         "updates_compile_s": u_first - u_best,
         "adapt_s": a_best,
         "adapt_compile_s": a_first - a_best,
@@ -73,26 +94,37 @@ def measure(env: str, actor: str, updates: int, repeats: int) -> dict:
     }
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--env", default="cartpole_fl_ood")
     parser.add_argument("--actors", default="symbolic,pearl,hyper")
+    parser.add_argument("--physics", default="auto", help="comma-separated: auto, mjx, native")
     parser.add_argument("--updates", type=int, default=50)
     parser.add_argument("--repeats", type=int, default=2)
-    args = parser.parse_args()
-    rows = [measure(args.env, a, args.updates, args.repeats) for a in args.actors.split(",")]
+    parser.add_argument("--json", help="also write the rows, command and machine here")
+    args = parser.parse_args(argv)
+    rows = [
+        measure(args.env, a, args.updates, args.repeats, p)
+        for a in args.actors.split(",")
+        for p in args.physics.split(",")
+    ]
     print(f"\n{args.env}, {args.updates} updates per timed call, best of {args.repeats}\n")
     print(
-        "| actor | collection / iteration (s) | ms / update | protocol on the test tasks (s) "
-        "| compile: collect, updates, protocol (s) |"
+        "| actor | physics | collection / iteration (s) | updates / iteration (s) "
+        "| protocol on the test tasks (s) | compile: collect, updates, protocol (s) |"
     )
-    print("|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|")
     for r in rows:
+        updates_s = r["update_ms"] * r["updates_per_iteration"] / 1000
         print(
-            f"| {r['actor']} | {r['collect_s']:.2f} ({r['steps_per_iteration']} env steps) "
-            f"| {r['update_ms']:.1f} | {r['adapt_s']:.1f} | {r['collect_compile_s']:.0f}, "
-            f"{r['updates_compile_s']:.0f}, {r['adapt_compile_s']:.0f} |"
+            f"| {r['actor']} | {r['physics'] or '-'} | {r['collect_s']:.2f} "
+            f"({r['steps_per_iteration']} env steps) | {updates_s:.2f} "
+            f"({r['updates_per_iteration']} × {r['update_ms']:.1f} ms) | {r['adapt_s']:.1f} "
+            f"| {r['collect_compile_s']:.0f}, {r['updates_compile_s']:.0f}, "
+            f"{r['adapt_compile_s']:.0f} |"
         )
+    if args.json:
+        write_result(args.json, rows, argv, script="benchmarks/meta_cost.py")
 
 
 if __name__ == "__main__":
