@@ -9,11 +9,21 @@
 # (default: .venv/bin/python if present, else python3). The install step is skipped when JAX
 # already sees a GPU. A benchmark that fails or times out is logged in OUTDIR/summary.txt and
 # the script goes on; it exits 0 unless the install left no working `import espl_jax`.
-# Worst case (every step hitting its timeout) is ~9 minutes, ~7 without the install; each
-# benchmark's budget is set below. The install needs the package index (or a local wheel cache);
-# on a machine without network it fails, is logged, and the benchmarks run with whatever JAX is
-# installed (the devices line in summary.txt says which backend they used).
-# Not part of the test suite.
+# Worst case (every step hitting its timeout) is ~10 minutes, ~8 without the install; each
+# benchmark's budget is set below.
+#
+# Offline GPU nodes (HPC clusters: a preinstalled JAX with CUDA, often newer than the pinned one,
+# and no package index): WHEELS=DIR installs every wheel in DIR without resolving or touching
+# the JAX found (pip --no-index --no-deps --target $SITE, default /tmp/espl-site, put first on
+# PYTHONPATH); the project itself runs from this checkout (PYTHONPATH), not installed. Fill DIR
+# on a machine with network, for the node's Python (here 3.12) and platform, e.g.:
+#   pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+#     --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 -d wheels \
+#     mujoco==3.17.0 mujoco-mjx==3.17.0 brax==0.14.2 gymnasium==1.4.0 ... (their dependencies
+#     that the node lacks: `python -m pip check` there lists them)
+# Without WHEELS the install needs the package index; on a machine without network it fails, is
+# logged, and the benchmarks run with whatever is installed (summary.txt's devices line says
+# which backend they used). Not part of the test suite.
 set -u -o pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -50,7 +60,12 @@ log "espl-jax GPU benchmarks into $OUTDIR"
 log "GPU: $(tail -n +2 "$OUTDIR/gpu.txt" | head -1)"
 
 has_gpu() { "$PYTHON" -c "import jax, espl_jax; assert jax.default_backend() == 'gpu'" 2>/dev/null; }
-if has_gpu; then
+if [ -n "${WHEELS:-}" ]; then
+    SITE="${SITE:-/tmp/espl-site}"
+    step install 300 "$PYTHON" -m pip install --quiet --no-index --no-deps --no-compile \
+        --upgrade --target "$SITE" "$WHEELS"/*.whl
+    export PYTHONPATH="$ROOT:$SITE${PYTHONPATH#"$ROOT"}"
+elif has_gpu; then
     log "install: skipped (JAX already on the GPU)"
 else
     step install 120 "$PYTHON" -m pip install -e ".[cuda]"
@@ -65,10 +80,13 @@ if ! "$PYTHON" -c "import espl_jax" 2>/dev/null; then
     exit 1
 fi
 
-# Throughput: MJX env steps/s at large batches (where a GPU pays), then training throughput of
-# ours (MLP and symbolic actor) against brax's SAC, and the SGD step alone.
+# Throughput: env steps/s at large batches (where a GPU pays), MJX on the GPU beside MuJoCo's C
+# engine on the node's CPU; then training throughput of ours (MLP and symbolic actor) against
+# brax's SAC, and the SGD step alone.
 step env_throughput 45 "$PYTHON" benchmarks/env_throughput.py \
     --envs inverted_double_pendulum,hopper --batch 1,256,4096 --steps 200
+step env_throughput_native 60 "$PYTHON" benchmarks/env_throughput.py --physics mjx,native \
+    --envs hopper --batch 5,40 --steps 200 --json "$OUTDIR/env_throughput_native.json"
 step vs_brax_sac 130 "$PYTHON" benchmarks/vs_brax_sac.py \
     --env-steps 200 --iterations 3 --sgd-steps 500 --json "$OUTDIR/vs_brax_sac.json"
 # Scaling: vmapped seeds of the ESPL trainer (the env's config actor: symbolic).
