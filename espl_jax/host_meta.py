@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from espl_jax import replay, rollout
+from espl_jax import pearl, replay, rollout
 from espl_jax.host import env_seeds, host_chunk
 from espl_jax.replay import Transition
 from espl_jax.rollout import Adapted
@@ -228,12 +228,15 @@ class HostAdapter:
 
             return jax.vmap(lane)(parts, masks, obs)
 
-        def factors(encoder_params, transitions):
-            return jax.vmap(partial(encoder.factors, encoder_params))(transitions)
+        def accumulate(encoder_params, posterior, transitions, weight):  # one seed, lanes [M]
+            """Multiply each active lane's new transition into its ``pearl.Posterior``."""
+            mu, var = jax.vmap(partial(encoder.factors, encoder_params))(transitions)
+            return jax.vmap(pearl.Posterior.add)(posterior, mu, var, weight)
 
         self._generate = jax.jit(jax.vmap(generate))
         self._act = jax.jit(jax.vmap(act))
-        self._factors = jax.jit(jax.vmap(factors))
+        self._accumulate = jax.jit(jax.vmap(accumulate))
+        self._gaussian = jax.jit(jax.vmap(jax.vmap(pearl.Posterior.gaussian)))
         self.runs, self.eval_steps = cfg.eval_runs, cfg.eval_steps
         self.exploration = cfg.eval_exploration_trajectories
 
@@ -253,8 +256,9 @@ class HostAdapter:
         ]
         z = rng.standard_normal((seeds, lanes, latent)).astype(np.float32)
         parts, masks = self._generate(state.actor, jnp.asarray(z))
-        precision = np.zeros((seeds, lanes, latent))
-        weighted = np.zeros((seeds, lanes, latent))
+        posterior = pearl.Posterior(
+            jnp.zeros((seeds, lanes, latent)), jnp.zeros((seeds, lanes, latent))
+        )
         ep_return = np.zeros((seeds, lanes))
         steps = np.zeros((seeds, lanes), np.int64)
         trajectories = np.zeros((seeds, lanes), np.int64)
@@ -277,12 +281,12 @@ class HostAdapter:
                     o, r, term, trunc, _ = gym_envs[s][m].step(env_action[s, m])
                     next_obs[s, m], reward[s, m], terminated[s, m] = o, r, term
                     ended[s, m] = term or trunc
-                mu, var = self._factors(
-                    state.encoder, Transition(obs, action, reward, next_obs, terminated)
+                posterior = self._accumulate(
+                    state.encoder,
+                    posterior,
+                    Transition(obs, action, reward, next_obs, terminated),
+                    active.astype(np.float32),
                 )
-                weight = active[..., None]
-                precision += weight / np.asarray(var)
-                weighted += weight * np.asarray(mu) / np.asarray(var)
                 ep_return += np.where(active, reward, 0.0)
                 steps += active
                 trajectories += ended
@@ -293,10 +297,10 @@ class HostAdapter:
                 obs = next_obs
                 if again.any():
                     noise = rng.standard_normal((seeds, lanes, latent))
-                    post_var = 1.0 / np.maximum(precision, 1e-30)
-                    posterior = post_var * weighted + np.sqrt(post_var) * noise
+                    post_mu, post_var = (np.asarray(x) for x in self._gaussian(posterior))
+                    sample = post_mu + np.sqrt(post_var) * noise
                     use = (trajectories >= self.exploration)[..., None]
-                    new_z = np.where(use, posterior, noise).astype(np.float32)
+                    new_z = np.where(use, sample, noise).astype(np.float32)
                     z = np.where(again[..., None], new_z, z)
                     parts, masks = self._generate(state.actor, jnp.asarray(z))
                     ep_return = np.where(again, 0.0, ep_return)
