@@ -106,6 +106,11 @@ class Trainer:
         # ``benchmarks/meta_cost.py`` does: a cached tracer would leak into later traces.
         with jax.ensure_compile_time_eval():
             env, family = make_env(self.config.env, resolve_physics(self.config.physics))
+        if self.config.physics != "auto" and self.config.env not in envs.MUJOCO:
+            raise UserError(
+                f"physics: {self.config.physics} applies to the MuJoCo tasks only, and "
+                f"{self.config.env} is not one; leave physics at auto"
+            )
         kinds = META_ACTORS if family is not None else SINGLE_TASK_ACTORS
         if self.config.actor not in kinds:
             what = "meta-RL task family" if family is not None else "single-task env"

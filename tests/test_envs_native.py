@@ -251,3 +251,18 @@ def test_native_run_killed_mid_chunk_resumes_bit_for_bit(tmp_path, jax_cache):
 
     record = json.loads((killed / run.EVAL_FILE).read_text())
     assert record["physics"] == "native"
+
+
+def test_physics_is_chosen_per_platform_and_refused_where_it_does_not_apply():
+    from espl_jax import config as config_lib
+    from espl_jax.config import UserError
+    from espl_jax.trainer import Trainer
+
+    assert jax.default_backend() == "cpu"
+    auto = Trainer(config_lib.resolve("hopper_params"))
+    assert auto.physics == "native" and isinstance(auto.env, NativeEnv)
+    mjx = Trainer(config_lib.resolve("hopper", physics="mjx"))
+    assert mjx.physics == "mjx" and not isinstance(mjx.env, NativeEnv)
+    assert Trainer(config_lib.resolve("cartpole")).physics is None
+    with pytest.raises(UserError, match="MuJoCo tasks only"):
+        _ = Trainer(config_lib.resolve("cartpole", physics="native")).env
