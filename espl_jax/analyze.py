@@ -41,7 +41,7 @@ import sympy as sp
 import envs
 from espl_jax import config as config_lib
 from espl_jax import expression as ex
-from espl_jax import run
+from espl_jax import run, runlock
 from espl_jax.cli import check_path, run_main
 from espl_jax.config import UserError
 
@@ -404,9 +404,10 @@ def main(argv: list[str] | None = None) -> int:
     formula = ex.to_text(exprs)
     print(format_report(result, formula))
     eval_path = run_dir / run.EVAL_FILE
-    record = json.loads(eval_path.read_text()) if eval_path.is_file() else {}
-    record["stability"] = {**result, "seed": seed, "formula": formula}
-    eval_path.write_text(json.dumps(record, indent=2) + "\n")
+    with runlock.hold(run_dir):  # eval.json is read and rewritten
+        record = json.loads(eval_path.read_text()) if eval_path.is_file() else {}
+        record["stability"] = {**result, "seed": seed, "formula": formula}
+        run.write_json(eval_path, record)
     return 0
 
 

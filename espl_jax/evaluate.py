@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 import envs
-from espl_jax import evaluation, run
+from espl_jax import evaluation, run, runlock
 from espl_jax.cli import check_path, run_main
 from espl_jax.config import UserError
 
@@ -30,7 +30,6 @@ def main(argv: list[str] | None = None) -> int:
     check_path(args.run_dir, "RUN_DIR")
     run_dir = Path(args.run_dir)
     config = run.saved_config(run_dir)
-    record = run.read_eval(run_dir) or {}  # read first: a corrupt eval.json is never overwritten
     if envs.is_family(config.env):
         raise UserError(
             f"{config.env} is a meta-RL task family: its run was evaluated by PEARL's protocol "
@@ -42,11 +41,13 @@ def main(argv: list[str] | None = None) -> int:
             f"(known: {', '.join(evaluation.REFERENCE_ENVS)}); its eval.json holds the JAX "
             "evaluation of the same formula"
         )
-    policy = evaluation.load_policy(run_dir / run.POLICY_FILE)
-    returns = evaluation.rollout_returns(policy.act, config.env, args.episodes, args.seed)
-    summary = evaluation.summary(returns)
-    record["reference_eval"] = {**summary, "first_seed": args.seed}
-    run.write_json(run_dir / run.EVAL_FILE, record)
+    with runlock.hold(run_dir):  # eval.json is read here and rewritten below
+        record = run.read_eval(run_dir) or {}  # first: a corrupt eval.json is never overwritten
+        policy = evaluation.load_policy(run_dir / run.POLICY_FILE)
+        returns = evaluation.rollout_returns(policy.act, config.env, args.episodes, args.seed)
+        summary = evaluation.summary(returns)
+        record["reference_eval"] = {**summary, "first_seed": args.seed}
+        run.write_json(run_dir / run.EVAL_FILE, record)
     print(
         f"{config.env}: {summary['mean']:.2f} ± {summary['std']:.2f} over "
         f"{summary['episodes']} episodes (min {summary['min']:.2f}, max {summary['max']:.2f})"

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from espl_jax import checkpoint, evaluation, faults, host, replay
+from espl_jax import checkpoint, evaluation, faults, host, replay, runlock
 from espl_jax import config as config_lib
 from espl_jax import expression as ex
 from espl_jax import halloffame as hof
@@ -116,18 +116,32 @@ def train(
 
     Returns:
         The content of eval.json (empty if stopped early).
+
+    Raises:
+        UserError: bad input, or another process holds ``run_dir`` (``runlock``).
     """
     run_dir = Path(run_dir)
     trainer = Trainer(config)
     # Fail fast on an unknown env or too many devices, before anything is written.
     trainer.env  # noqa: B018
     trainer.mesh  # noqa: B018
+    if jax.process_count() > 1 and trainer.on_host:
+        raise UserError(f"{config.env} is stepped in gymnasium on the host: it runs in one process")
+    if jax.process_index() != 0:  # process 0 holds the run directory for the whole group
+        return _train(trainer, run_dir, resume, show_progress, stop_after)
+    run_dir.mkdir(parents=True, exist_ok=True)  # resume: it exists (config.yaml was read)
+    with runlock.hold(run_dir):
+        return _train(trainer, run_dir, resume, show_progress, stop_after)
+
+
+def _train(
+    trainer: Trainer, run_dir: Path, resume: bool, show_progress: bool, stop_after: int | None
+) -> dict[str, Any]:
+    config = trainer.config
     # Multi-process runs (--distributed): every process computes, all write the checkpoints
     # (each its own seeds' shards; orbax coordinates), and only process 0 writes the other files
     # of the run directory; the others write theirs to a scratch directory.
     primary = jax.process_index() == 0
-    if jax.process_count() > 1 and trainer.on_host:
-        raise UserError(f"{config.env} is stepped in gymnasium on the host: it runs in one process")
     out = run_dir if primary else Path(tempfile.mkdtemp(prefix=f"espl-{jax.process_index()}-"))
     if resume:
         start, state = restore(run_dir, trainer)

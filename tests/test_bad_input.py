@@ -432,8 +432,9 @@ def test_export_without_eval_json_exports_seed_0(finished_run, tmp_path, capfd):
 
 # A run directory missing each one of its files in turn ------------------------------------------
 
-RUN_FILES = ("checkpoints", "config.yaml", "eval.json", "expression.txt", "formulas.jsonl",
-             "hall_of_fame.png", "learning_curve.png", "metrics.jsonl", "policy.py")  # fmt: skip
+RUN_FILES = (".lock", "checkpoints", "config.yaml", "eval.json", "expression.txt",
+             "formulas.jsonl", "hall_of_fame.png", "learning_curve.png", "metrics.jsonl",
+             "policy.py")  # fmt: skip
 COMMANDS = {
     "evaluate": ("evaluate", "{run}", "--episodes", "2"),
     "export": ("export", "{run}"),
