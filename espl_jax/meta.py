@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from espl_jax import evaluation, rollout
+from espl_jax import evaluation, faults, rollout
 from espl_jax import expression as ex
 from espl_jax import run as run_lib
 from espl_jax.sac import TrainState
@@ -68,6 +68,7 @@ def finish(
 
     keys = jax.vmap(jax.random.fold_in, (0, None))
     test = gather(run_lib.adapter(trainer, test_params)(state, keys(state.key, 3)))
+    faults.kill_point("protocol")  # between the test tasks' protocol and the training tasks'
     # PEARL also evaluates on as many training tasks as there are test tasks.
     n = min(family.n_test, family.n_train)
     subset = jax.tree.map(lambda x: x[:n], train_params)
@@ -152,6 +153,7 @@ def _export_test_tasks(
         source = ex.to_python(exprs, env.obs_dim, env.action_low, env.action_high)
         run_lib._write_atomic(directory / run_lib.POLICY_FILE, source)
         files.append(directory / run_lib.POLICY_FILE)
+        faults.kill_point("test-task-export")  # after the first task's files
     result["length"] = float(np.mean(lengths))
     result["selected_paths_per_action"] = float(np.mean(paths))
     return files

@@ -173,8 +173,6 @@ def _train(
     warnings: list[str] = []
     run_chunk, close = chunk_runner(trainer)
     progress_eval = progress_evaluator(trainer)
-    if start == 0 and trainer.meta:  # PEARL's initial collection on every training task
-        state = warmup(trainer, state)
     bar = tqdm(
         total=config.iterations,
         initial=start,
@@ -183,10 +181,16 @@ def _train(
         disable=not show_progress or not primary,
     )
     with checkpoint.manager(run_dir / CHECKPOINT_DIR) as mngr, close:
+        if not resume:  # a run killed before its first chunk ends resumes from here
+            checkpoint.save(mngr, 0, state)
+        if start == 0 and trainer.meta:  # PEARL's initial collection on every training task
+            state = warmup(trainer, state)
         iteration = start
         while iteration < end:
             length = min(config.chunk_iterations, end - iteration)
             new_state, metrics = run_chunk(state, length)
+            # JAX envs: the chunk is still running (dispatch is asynchronous); host envs: done.
+            faults.kill_point(f"chunk:{iteration + length}")
             metrics = gather(metrics)
             diverged = _non_finite(metrics, iteration)
             if diverged:
@@ -314,8 +318,11 @@ def warmup(trainer: Trainer, state: TrainState) -> TrainState:
     if trainer.on_host:
         from espl_jax.host_meta import HostMetaCollector
 
-        return HostMetaCollector(trainer).warmup(state)
-    return trainer.compiled_warmup()(state)
+        state = HostMetaCollector(trainer).warmup(state)
+    else:
+        state = trainer.compiled_warmup()(state)
+    faults.kill_point("warmup")  # nothing of it is written yet (JAX: it may still be running)
+    return state
 
 
 def adapter(trainer: Trainer, task_params: Any):

@@ -144,12 +144,13 @@ def test_export_of_mlp_run_has_no_formula(tmp_path):
 
 
 def _damage(run_dir: Path, keep_metadata: bool) -> None:
-    """Overwrite the files of the only checkpoint with garbage (all of them, or the data only)."""
-    steps = [p for p in (run_dir / run.CHECKPOINT_DIR).iterdir() if p.name.isdigit()]
-    assert [p.name for p in steps] == ["2"]
+    """Overwrite the files of the newest checkpoint with garbage (all of them, or the data
+    only); the one before it is the initial state's."""
+    steps = [p.name for p in (run_dir / run.CHECKPOINT_DIR).iterdir() if p.name.isdigit()]
+    assert sorted(steps) == ["0", "2"]
     metadata = {"_CHECKPOINT_METADATA", "commit_success.txt"}
     damaged = 0
-    for path in steps[0].rglob("*"):
+    for path in (run_dir / run.CHECKPOINT_DIR / "2").rglob("*"):
         if path.is_file() and not (keep_metadata and path.name in metadata):
             path.write_bytes(b"\x00garbage\xff" * 3)
             damaged += 1
