@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import sympy as sp
+from sympy.functions.elementary.trigonometric import TrigonometricFunction
 
 from espl_jax import operators as ops
 from espl_jax.selector import EXPORT_WEIGHT_THRESHOLD
@@ -233,10 +234,34 @@ def readable(expr: sp.Expr) -> sp.Expr:
         return expr
     plain = _unprotect(expr)
     if complexity(plain) <= SIMPLIFY_MAX_LENGTH:
-        simplified = sp.simplify(plain)
+        simplified = _simplify(plain)
         if complexity(simplified) <= complexity(plain):
             return simplified
     return plain
+
+
+def _simplify(expr: sp.Expr) -> sp.Expr:
+    """``sympy.simplify``, except that trigonometric calls are simplified inside but not combined.
+
+    sympy's trigsimp can run for many minutes on a short formula: a hopper_params formula of
+    length 70 with one ``cos`` of a product of sums did not finish in 300 s (the end-of-run export
+    of its test tasks stalled for over ten minutes), while the same formula with the ``cos``
+    held as a symbol simplifies in ~1 s. So each trig call's argument is simplified on its own,
+    the call then stands in as a symbol while the whole is simplified, and is put back; what is
+    lost are identities between trig calls (sin² + cos² = 1), which pruned formulas rarely hold.
+    """
+    hidden: dict[sp.Dummy, sp.Expr] = {}
+
+    def hide(call: sp.Expr) -> sp.Dummy:
+        symbol = sp.Dummy()
+        hidden[symbol] = call.func(sp.simplify(call.args[0]))
+        return symbol
+
+    masked = expr.replace(lambda e: isinstance(e, TrigonometricFunction), hide)
+    out = sp.simplify(masked)
+    while hidden and out.has(*hidden):  # a hidden call's argument may hold another
+        out = out.xreplace(hidden)
+    return out
 
 
 def round_floats(expr: sp.Expr, digits: int = 4) -> sp.Expr:

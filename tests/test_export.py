@@ -183,6 +183,22 @@ def test_complexity_counts_operators_constants_and_variables():
     assert ex.mean_complexity([x0, 2.5 * x0 - x1]) == 3.0
 
 
+def test_a_trig_formula_simplifies_to_the_same_function():
+    """An adapted hopper_params formula (length 70): sympy's trigsimp did not finish on it in
+    300 s and stalled a run's export; with trig calls held apart it simplifies to the same
+    function, its trig argument simplified too."""
+    x = sp.symbols("x0:11")
+    inner = (0.9814 * x[5] + 1.013) * (-0.2858 * x[10] + 0.7175 * x[2] + 0.4201 * x[6] + 1.103)
+    expr = -4.976 * x[1] - 0.215 * inner + 0.671 * sp.cos(1.095 * x[5] + 0.3699 * inner + 0.34)
+    out = ex.readable(expr)
+    assert ex.complexity(out) <= ex.complexity(expr) and out.has(sp.cos)
+    f, g = (sp.lambdify(x, e, "numpy") for e in (expr, out))
+    points = np.random.default_rng(0).normal(size=(11, 50))
+    np.testing.assert_allclose(f(*points), g(*points), rtol=1e-9, atol=1e-9)
+    # identities between trig calls are the part given up; one call's argument still simplifies
+    assert ex.readable(sp.sin(x[0] + x[0]) + x[1]) == sp.sin(2 * x[0]) + x[1]
+
+
 def test_unpruned_network_exports_in_protected_form():
     # Every path kept: the expression tree has millions of nodes. Unprotecting or printing it walks
     # the whole tree (minutes to hours); above READABLE_MAX_LENGTH neither is attempted.
