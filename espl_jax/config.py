@@ -44,6 +44,11 @@ class Config:
     # Devices the seed axis is sharded over (jax.sharding, one mesh axis "seeds"): 0 = as many
     # of jax.devices() as divide ``seeds``; N > 0 = N devices, which must divide ``seeds``.
     devices: int = 0
+    # How MuJoCo tasks are simulated: "native" steps MuJoCo's C engine on the host (envs/native.py,
+    # the fast path on a CPU), "mjx" steps MJX inside the compiled program (the fast path on an
+    # accelerator), "auto" picks native when JAX's default backend is the CPU, else mjx.
+    # Non-MuJoCo envs ignore it.
+    physics: str = "auto"
 
     # Budget (Algorithm 1): iterations of (collect, update).
     iterations: int = 100
@@ -164,6 +169,7 @@ _CHOICES = {
     "layout": ("arranged", "dense", "plain", "csp", "csp_cond"),
     "selector": ("probabilistic", "l1"),
     "csp_relaxed_mask": ("straight_through", "soft"),
+    "physics": ("auto", "mjx", "native"),
 }
 _POSITIVE_INT = (
     "seeds",

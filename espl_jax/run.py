@@ -82,7 +82,11 @@ def saved_config(run_dir: str | Path) -> Config:
     path = Path(run_dir) / "config.yaml"
     if not path.is_file():
         raise UserError(f"{run_dir} is not a run directory (no config.yaml)")
-    return config_lib.load(path)
+    values = config_lib.load_yaml(path)
+    # Runs saved before the physics key existed stepped MuJoCo in MJX: their checkpoints hold
+    # MJX states, so they resume on MJX.
+    values.setdefault("physics", "mjx")
+    return config_lib.from_mapping(values)
 
 
 def resume_config(
@@ -459,6 +463,7 @@ def result_header(
             "wall_seconds_training": round(train_seconds, 1),
         },
         "devices": trainer.device_info,
+        **({"physics": trainer.physics} if trainer.physics else {}),
     }
 
 

@@ -38,6 +38,12 @@ def parser() -> argparse.ArgumentParser:
         help="symbolic (ESPL; CSP on a task family), mlp (SAC), pearl or hyper (task families)",
     )
     p.add_argument("--seed", type=int, help="base random seed")
+    p.add_argument(
+        "--physics",
+        choices=["auto", "mjx", "native"],
+        help="MuJoCo tasks: native (MuJoCo's C engine on the host), mjx (MJX in the compiled "
+        "program) or auto (native on a CPU, mjx on an accelerator; the default)",
+    )
     p.add_argument("--out", help="run directory (default: runs/ENV-ACTOR-TIMESTAMP)")
     p.add_argument(
         "--resume",
@@ -64,7 +70,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 # Flags that define a run; on --resume the run's saved config defines it instead.
-RUN_DEFINING_FLAGS = ("env", "seeds", "config", "actor", "seed", "out")
+RUN_DEFINING_FLAGS = ("env", "seeds", "config", "actor", "seed", "physics", "out")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -134,6 +140,7 @@ def resolve_config(args: argparse.Namespace) -> Config:
         iterations=args.iterations,
         actor=args.actor,
         seed=args.seed,
+        physics=args.physics,
         devices=args.devices,
     )
 
