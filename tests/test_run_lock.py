@@ -95,10 +95,11 @@ def test_two_trainings_of_one_run_directory_then_kill_9_and_resume(tmp_path, jax
     cmd = [sys.executable, "-m", "espl_jax.train", "--no-progress"]
     env = {**os.environ, **jax_cache}
 
-    def cli(*args: str) -> subprocess.CompletedProcess:
-        return subprocess.run(
-            [*cmd, *args], cwd=REPO, env=env, capture_output=True, text=True, timeout=600
-        )
+    def cli(*args: str) -> subprocess.Popen:
+        return subprocess.Popen(
+            [*cmd, *args], cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+            text=True,
+        )  # fmt: skip
 
     first = subprocess.Popen(
         [*cmd, "--config", str(config_file), "--out", str(run_dir)],
@@ -110,12 +111,13 @@ def test_two_trainings_of_one_run_directory_then_kill_9_and_resume(tmp_path, jax
             assert first.poll() is None, first.stderr.read()
             assert time.monotonic() < deadline, "no checkpoint in time"
             time.sleep(0.2)
-        for args in (("--config", str(config_file), "--out", str(run_dir)),
-                     ("--resume", str(run_dir))):  # fmt: skip
-            refused = cli(*args)
-            assert refused.returncode == 2, refused.stderr
-            lines = refused.stderr.strip().splitlines()
-            assert len(lines) == 1 and lines[0].startswith("error: "), refused.stderr
+        second = cli("--config", str(config_file), "--out", str(run_dir))
+        resumer = cli("--resume", str(run_dir))  # beside it: the two only read before refusing
+        for refused in (second, resumer):
+            _, stderr = refused.communicate(timeout=600)
+            assert refused.returncode == 2, stderr
+            lines = stderr.strip().splitlines()
+            assert len(lines) == 1 and lines[0].startswith("error: "), stderr
             assert f"in use by another process (pid {first.pid} on host" in lines[0]
         assert first.poll() is None, "the first run must hold the directory throughout"
     finally:
@@ -127,6 +129,7 @@ def test_two_trainings_of_one_run_directory_then_kill_9_and_resume(tmp_path, jax
     # The stale lock blocks nothing: resume up to the newest checkpoint and finish the run there.
     trained = max(_committed(run_dir))
     resumed = cli("--resume", str(run_dir), "--iterations", str(trained))
-    assert resumed.returncode == 0, resumed.stderr
+    _, stderr = resumed.communicate(timeout=600)
+    assert resumed.returncode == 0, stderr
     assert run.read_eval(run_dir)["training"]["iterations"] == trained
     assert (run_dir / runlock.LOCK_FILE).read_text() == ""

@@ -14,7 +14,7 @@ goes up to training (``check_flags``, ``resolve_config``) and must either
 - be refused with exit status 2 and one ``error:`` line (argparse's own refusals of a flag's
   type or choice: its usage lines and one error line), with no traceback.
 
-Nothing may be written either way. The examples are derandomized and bounded (a few seconds).
+Nothing may be written either way. The examples are derandomized and bounded (600, ~10 s).
 """
 
 from __future__ import annotations
@@ -129,15 +129,15 @@ def shipped(env: str) -> Config:
     return config_lib.resolve(env)
 
 
+RESOLVED: list[Config] = []  # what resolve_only resolved, for the example that ran it
+
+
 def resolve_only(argv: list[str] | None) -> int:
     """``train.main`` up to training: what it checks and resolves, nothing else."""
     args = train.parser().parse_args(argv)
     train.check_flags(args)
     RESOLVED.append(train.resolve_config(args))
     return 0
-
-
-RESOLVED: list[Config] = []
 
 
 def same(a: Any, b: Any) -> bool:
@@ -202,7 +202,7 @@ def test_every_given_value_is_honoured_or_refused():
     run_config = config_lib.from_mapping(TINY)
 
     @settings(
-        max_examples=1000,
+        max_examples=600,
         derandomize=True,
         database=None,
         deadline=None,
@@ -255,4 +255,4 @@ def test_every_given_value_is_honoured_or_refused():
 
     check()
     # Both ways are taken, often: the property is not met by refusing everything.
-    assert outcomes["honoured"] >= 50 and outcomes["refused"] >= 50, outcomes
+    assert outcomes["honoured"] >= 30 and outcomes["refused"] >= 30, outcomes
