@@ -1,0 +1,67 @@
+"""Collect finished runs' headline figures into one results JSON (results as data, not prose).
+
+For each run directory: the command that reproduces it (from its config.yaml), its seed, physics
+backend, budget, training wall time and returns (meta-RL: the protocol's test and train means;
+single task: the exported policy's JAX return and policy.py's reference return)::
+
+    python benchmarks/run_summary.py /work/sweeps/hp_native_s* --label "CSP, native physics" \\
+        --json results/hopper_params_native.json
+
+Not part of the test suite.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from env_throughput import write_result
+
+from espl_jax import config as config_lib
+
+
+def summary(run_dir: Path) -> dict:
+    cfg = config_lib.load(run_dir / "config.yaml")
+    record = json.loads((run_dir / "eval.json").read_text())
+    row = {
+        "run": str(run_dir),
+        "command": (
+            f"python -m espl_jax.train --env {cfg.env} --actor {cfg.actor} --seed {cfg.seed} "
+            f"--physics {cfg.physics}"
+        ),
+        "env": cfg.env,
+        "actor": cfg.actor,
+        "seed": record["train_seed"],
+        "physics": record.get("physics"),
+        "env_steps": record["training"]["env_steps"],
+        "iterations": record["training"]["iterations"],
+        "wall_seconds_training": record["training"]["wall_seconds_training"],
+    }
+    if "test" in record:
+        row |= {"test_return": record["test"]["mean"], "train_return": record["train"]["mean"]}
+        row |= {k: record[k] for k in ("length", "selected_paths_per_action") if k in record}
+    else:
+        row["jax_return"] = record["jax_eval"]["mean"]
+        if "reference_eval" in record:
+            row["reference_return"] = record["reference_eval"]["mean"]
+        if "length" in record:
+            row["length"] = record["length"]
+    return row
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("runs", nargs="+", type=Path)
+    parser.add_argument("--label", default="", help="what the runs are, for the reader")
+    parser.add_argument("--json", required=True)
+    args = parser.parse_args(argv)
+    rows = [summary(d) for d in args.runs]
+    for row in rows:
+        row["label"] = args.label
+        print(json.dumps(row))
+    write_result(args.json, rows, argv, script="benchmarks/run_summary.py")
+
+
+if __name__ == "__main__":
+    main()
