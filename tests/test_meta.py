@@ -291,9 +291,10 @@ def test_single_task_run_is_the_pre_restructure_one():
 def test_an_mjx_family_first_built_inside_a_trace_holds_no_tracer():
     """``benchmarks/meta_cost.py`` first touches the trainer's env inside a jitted warm-up: the
     cached MJX model must be concrete arrays, not that trace's tracers (which leaked into the
-    next trace as an UnexpectedTracerError before the fix)."""
-    trainer = Trainer(config_lib.resolve(env="invdoublepend_params"))
-    jax.jit(lambda x: x + trainer.env.obs_dim)(0.0)
+    next trace as an UnexpectedTracerError before the fix). The MJX model is built on first use
+    (the native backend never needs it), so it is first asked for inside the trace here."""
+    trainer = Trainer(config_lib.resolve(env="invdoublepend_params", physics="mjx"))
+    jax.jit(lambda x: x + trainer.env.obs_dim + trainer.env._mx.nq)(0.0)
     leaves = jax.tree.leaves(trainer.env._mx)
     assert leaves
     assert not any(isinstance(leaf, jax.core.Tracer) for leaf in leaves)
