@@ -25,7 +25,9 @@ a family's task (default × multiplier, in float32) gives what MJX simulates, in
 from __future__ import annotations
 
 import copy
+import os
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from types import SimpleNamespace
 
 import jax
@@ -41,7 +43,8 @@ from envs.mjx import MjxEnv, MjxParams
 # as cheetah's target velocity, which only the reward reads).
 MODEL_FIELDS = tuple(MjxParams.__dataclass_fields__)
 HOOK_FIELDS = ("qpos", "qvel", "qfrc_constraint", "site_xpos")  # what obs and reward read
-MAX_CACHED_MODELS = 512  # a run has at most a few hundred distinct tasks
+MAX_CACHED_MODELS = 512
+MAX_THREADS = 4  # a run has at most a few hundred distinct tasks
 
 
 @struct.dataclass
@@ -102,11 +105,14 @@ class NativeEnv(Environment):
     state's words, the action, the params as one float32 row, and back the new words and one
     float32 row ``[obs, reward, terminated, info...]``.
 
-    Attributes:
+    Args:
         task: the MJX env whose task this is (model, hooks; its MJX model is never built).
+        threads: host threads stepping a batch's lanes (default: the cores this process may
+            use, at most ``MAX_THREADS``). Results do not depend on it: each lane's state is
+            loaded whole before its step.
     """
 
-    def __init__(self, task: MjxEnv):
+    def __init__(self, task: MjxEnv, threads: int | None = None):
         self.task = task
         self.model = m = task.model
         self.name, self.horizon, self.dt = task.name, task.horizon, task.dt
@@ -124,10 +130,14 @@ class NativeEnv(Environment):
         # threads (one per device), and its callback threads come and go, so MuJoCo objects
         # must not live in thread-locals (their teardown outside Python crashes).
         self._lock = threading.Lock()
-        self._data = mujoco.MjData(m)
         self._cache: dict[bytes, mujoco.MjModel] = {}
+        # mj_step releases the GIL: a batch's lanes are split over ``threads`` workers, each
+        # with its own MjData (while the callback runs, XLA's own threads wait for it).
+        self.threads = max(1, threads or min(MAX_THREADS, len(os.sched_getaffinity(0))))
+        self._datas = [mujoco.MjData(m) for _ in range(self.threads)]
+        self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
         # the reward's info keys, from one reward of the model's own state on the host
-        view = self._hook_view(self._data, 1)
+        view = self._hook_view(self._datas[0], 1)
         lanes = self._lane_params(self.flat_params(default)[None])
         _, _, info = task._reward(view, view, np.zeros((1, m.nu)), lanes, np)
         self._info_keys = tuple(info)
@@ -222,12 +232,13 @@ class NativeEnv(Environment):
         ctrl = np.asarray(ctrl, np.float64)
         task = self.task
         substep = getattr(task, "_native_before_substep", None)
-        with self._lock:
-            data = self._data
-            after = self._hook_view(data, n)
-            new = np.empty_like(state)
-            for i in range(n):
-                model = self.host_model(rows[i])
+        after = self._hook_view(self._datas[0], n)
+        new = np.empty_like(state)
+
+        def run(worker: int, lanes: range) -> None:  # rows of new/after are the lanes' own
+            data = self._datas[worker]
+            for i in lanes:
+                model = models[i]
                 self._load(data, state[i])
                 data.ctrl[:] = ctrl[i]
                 if substep is None:
@@ -239,6 +250,16 @@ class NativeEnv(Environment):
                 self._save(data, new[i])
                 for name in HOOK_FIELDS:
                     getattr(after, name)[i] = getattr(data, name)
+
+        with self._lock:
+            models = [self.host_model(row) for row in rows]
+            # A before-substep hook edits the (shared, cached) model: one thread then.
+            workers = 1 if substep is not None else min(len(self._datas), n)
+            if workers <= 1:
+                run(0, range(n))
+            else:
+                chunks = np.array_split(np.arange(n), workers)
+                list(self._pool.map(run, range(workers), [range(c[0], c[-1] + 1) for c in chunks]))
         before = SimpleNamespace(qpos=state[:, self._slices["qpos"]])
         lanes = self._lane_params(rows)
         obs = task._obs(after, np)
@@ -255,7 +276,7 @@ class NativeEnv(Environment):
         state = from_words(words).reshape(n, self.state_size)
         rows = rows.reshape(n, -1)
         with self._lock:
-            data = self._data
+            data = self._datas[0]
             fields = self._hook_view(data, n)
             for i in range(n):
                 model = self.host_model(rows[i])

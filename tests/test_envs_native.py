@@ -266,3 +266,24 @@ def test_physics_is_chosen_per_platform_and_refused_where_it_does_not_apply():
     assert Trainer(config_lib.resolve("cartpole")).physics is None
     with pytest.raises(UserError, match="MuJoCo tasks only"):
         _ = Trainer(config_lib.resolve("cartpole", physics="native")).env
+
+
+def test_threads_step_the_same_lanes_bit_for_bit():
+    """A batch split over host threads (each with its own MjData) equals one thread's result."""
+    family = envs.make_family("walker2d_params", physics="native")
+    train, _ = family.tasks(0)
+    one, two = NativeEnv(family.env.task, threads=1), NativeEnv(family.env.task, threads=2)
+    assert two.threads == 2
+    rows = np.stack(
+        [np.asarray(one.flat_params(jax.tree.map(lambda x, i=i: x[i], train))) for i in range(6)]
+    )
+    keys = jax.random.split(jax.random.PRNGKey(3), 6)
+    _, state = jax.vmap(one.reset)(keys, jax.tree.map(lambda x: x[:6], train))
+    states = from_words(np.asarray(state.physics))
+    ctrl = np.random.default_rng(5).uniform(-1, 1, (6, one.action_dim))
+    for _ in range(20):
+        new_one, values_one = one.host_step64(states, ctrl, rows)
+        new_two, values_two = two.host_step64(states, ctrl, rows)
+        np.testing.assert_array_equal(new_one, new_two)
+        np.testing.assert_array_equal(values_one, values_two)
+        states = new_one
