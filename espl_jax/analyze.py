@@ -38,10 +38,9 @@ import jax.numpy as jnp
 import numpy as np
 import sympy as sp
 
-import envs
 from espl_jax import config as config_lib
+from espl_jax import envs, run, runlock
 from espl_jax import expression as ex
-from espl_jax import run, runlock
 from espl_jax.cli import check_path, run_main
 from espl_jax.config import UserError
 
@@ -142,7 +141,7 @@ def equilibrium(env: Any, params: Any) -> Equilibrium:
     check_has_equilibrium(env.name)
     t0 = jnp.zeros((), jnp.int32)
     if env.name == "cartpole":
-        from envs.classic import CartPoleState
+        from espl_jax.envs.classic import CartPoleState
 
         return Equilibrium(
             names=("x", "x_dot", "theta", "theta_dot"),
@@ -155,7 +154,7 @@ def equilibrium(env: Any, params: Any) -> Equilibrium:
             obs=env._obs,
         )
     if env.name == "pendulum":
-        from envs.classic import PendulumState
+        from espl_jax.envs.classic import PendulumState
 
         return Equilibrium(
             names=("theta", "theta_dot"),
@@ -170,7 +169,7 @@ def equilibrium(env: Any, params: Any) -> Equilibrium:
     # MJX pendula: the state is (qpos, qvel); every joint is a slider or a hinge (nq == nv)
     import mujoco
 
-    from envs.mjx import MjxState
+    from espl_jax.envs.mjx import MjxState
 
     model = env.model
     nq, nv = int(model.nq), int(model.nv)

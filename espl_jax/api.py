@@ -29,8 +29,8 @@ import jax.numpy as jnp
 import numpy as np
 import sympy as sp
 
-import envs
 from espl_jax import config as config_lib
+from espl_jax import envs
 from espl_jax import expression as ex
 from espl_jax import halloffame as hof
 from espl_jax import run as run_lib

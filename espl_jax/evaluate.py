@@ -6,8 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-import envs
-from espl_jax import evaluation, run, runlock
+from espl_jax import envs, evaluation, run, runlock
 from espl_jax.cli import check_path, run_main
 from espl_jax.config import UserError
 

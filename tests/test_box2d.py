@@ -18,10 +18,9 @@ import pytest
 import yaml
 from conftest import TINY, TINY_MLP
 
-import envs
-from envs.reference import reference_env
 from espl_jax import config as config_lib
-from espl_jax import evaluation, host, run
+from espl_jax import envs, evaluation, host, run
+from espl_jax.envs.reference import reference_env
 from espl_jax.trainer import Trainer
 
 pytestmark = pytest.mark.usefixtures("jax_cache")

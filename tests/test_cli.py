@@ -8,9 +8,8 @@ from pathlib import Path
 import pytest
 from conftest import TINY, TINY_MLP
 
-import envs
 from espl_jax import config as config_lib
-from espl_jax import run
+from espl_jax import envs, run
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -27,8 +27,8 @@ import mujoco
 import numpy as np
 import pytest
 
-import envs
-from envs.native import HOOK_FIELDS, NativeEnv, float64_words, from_words, to_words
+from espl_jax import envs
+from espl_jax.envs.native import HOOK_FIELDS, NativeEnv, float64_words, from_words, to_words
 
 REPO = Path(__file__).resolve().parent.parent
 STEPS = 100

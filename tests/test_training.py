@@ -26,8 +26,7 @@ import pytest
 import yaml
 from conftest import TINY, TINY_MLP
 
-import envs
-from espl_jax import checkpoint, evaluation, faults, replay, rollout, run
+from espl_jax import checkpoint, envs, evaluation, faults, replay, rollout, run
 from espl_jax import config as config_lib
 from espl_jax.policies import MLPActor, tanh_gaussian_log_prob
 from espl_jax.sac import SAC, TrainState
