@@ -1,4 +1,5 @@
-"""The wheel adds exactly one top-level name, ``espl_jax``.
+"""Packaging: the wheel adds exactly one top-level name, ``espl_jax``; the dependency ranges of
+pyproject.toml hold the exact tested set of constraints.txt.
 
 A top-level ``envs`` package (as the wheel once installed) would overwrite PyPI's ``envs``; the
 top-level ``envs/`` folder of the source tree installs as ``espl_jax.envs`` instead.
@@ -9,8 +10,12 @@ import io
 import shutil
 import subprocess
 import sys
+import tomllib
 import zipfile
 from pathlib import Path
+
+from packaging.requirements import Requirement
+from packaging.utils import canonicalize_name
 
 ROOT = Path(__file__).resolve().parent.parent
 # What the build reads. Copied into a fresh folder so that a stale build/ of the checkout (whose
@@ -58,3 +63,29 @@ def test_wheel_installs_only_espl_jax(tmp_path):
     ]:
         assert name in names, name
     assert not any(_top(n) == "envs" or n.startswith("envs/") for n in record)
+
+
+def _constraints() -> dict[str, str]:
+    pins = {}
+    for line in (ROOT / "constraints.txt").read_text().splitlines():
+        line = line.split("#", 1)[0].strip()
+        if line:
+            name, _, version = line.partition("==")
+            assert version, f"constraints.txt: {line!r} is not name==version"
+            pins[canonicalize_name(name)] = version
+    return pins
+
+
+def test_constraints_satisfy_the_declared_ranges():
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    declared = [*project["dependencies"], *project["optional-dependencies"]["dev"]]
+    pins = _constraints()
+    for line in declared:
+        req = Requirement(line)
+        name = canonicalize_name(req.name)
+        assert name in pins, f"{req.name} is declared but not pinned in constraints.txt"
+        assert req.specifier.contains(pins[name]), f"constraints.txt {name}=={pins[name]}: {req}"
+    # MJX runs MuJoCo's own model: the two packages must be the same release.
+    assert pins["mujoco"] == pins["mujoco-mjx"]
+    for line in project["dependencies"]:  # ranges, not pins: installable beside other packages
+        assert "==" not in line, line
