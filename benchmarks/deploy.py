@@ -70,9 +70,8 @@ import jax.numpy as jnp
 import numpy as np
 import sympy as sp
 
-import envs
 from espl_jax import config as config_lib
-from espl_jax import evaluation
+from espl_jax import envs, evaluation
 from espl_jax import expression as ex
 from espl_jax.analyze import exported_expressions
 

@@ -31,7 +31,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
-import envs
+from espl_jax import envs
 
 DEFAULT_ENVS = (
     "inverted_double_pendulum",

@@ -30,7 +30,7 @@ from pathlib import Path
 from seed_sweep import parse_overrides, parse_seeds
 
 from espl_jax import config as config_lib
-from espl_jax import run
+from espl_jax import run, rundir
 from espl_jax.cli import run_main
 from espl_jax.config import UserError
 
@@ -55,7 +55,7 @@ def train_all(env: str, actors: list[str], seeds: list[int], overrides: dict, ou
 def read_run(run_dir: Path) -> dict:
     """One finished meta-RL run: its config, result and learning curve."""
     config = run.saved_config(run_dir)
-    result = run.read_eval(run_dir)
+    result = rundir.read_eval(run_dir)
     if result is None or "test" not in result:
         raise UserError(f"{run_dir} has no meta-RL eval.json (unfinished, or a single-task run)")
     wall_file = run_dir / "wall_seconds.txt"
@@ -66,7 +66,7 @@ def read_run(run_dir: Path) -> dict:
     )
     curve = [
         (r["env_steps"], r["eval_return"])
-        for r in run.read_metrics(run_dir / run.METRICS_FILE)
+        for r in rundir.read_metrics(run_dir / rundir.METRICS_FILE)
         if "eval_return" in r
     ]
     return {

@@ -29,8 +29,8 @@ import time
 import jax
 from env_throughput import write_result
 
-import envs
 from espl_jax import config as config_lib
+from espl_jax import envs
 from espl_jax.trainer import Trainer
 
 

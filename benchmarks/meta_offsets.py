@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import sympy as sp
 
-from espl_jax import evaluation, meta, run
+from espl_jax import evaluation, meta, run, rundir
 
 
 def zero_offsets(expr: sp.Expr) -> dict[str, sp.Expr]:
@@ -49,10 +49,10 @@ def main() -> None:
         means: dict[str, list[float]] = {}
         for i, task in enumerate(tasks):
             task_dir = run_dir / meta.TEST_TASKS_DIR / str(i)
-            policy = evaluation.load_policy(task_dir / run.POLICY_FILE)
+            policy = evaluation.load_policy(task_dir / rundir.POLICY_FILE)
             low, high = policy.ACTION_LOW, policy.ACTION_HIGH
             xs = sp.symbols(f"x0:{policy.OBS_DIM}")
-            lines = (task_dir / run.EXPRESSION_FILE).read_text().splitlines()
+            lines = (task_dir / rundir.EXPRESSION_FILE).read_text().splitlines()
             exprs = [sp.sympify(line.split("=", 1)[1], {str(x): x for x in xs}) for line in lines]
             variants = [zero_offsets(e) for e in exprs]
             for name in variants[0]:

@@ -45,7 +45,7 @@ import numpy as np
 from env_throughput import compile_and_time, make_run  # same directory: run as a script
 from mujoco import mjx
 
-import envs
+from espl_jax import envs
 
 DEFAULT_ENVS = ("hopper", "walker2d", "inverted_double_pendulum")
 DEFAULT_SETTINGS = "env,6:6,4:50,4:4,1:4"

@@ -29,7 +29,7 @@ import numpy as np
 from env_throughput import write_result
 from mujoco import rollout
 
-from envs.mjx import MJX_ENVS
+from espl_jax.envs.mjx import MJX_ENVS
 
 SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS | mujoco.mjtState.mjSTATE_WARMSTART
 

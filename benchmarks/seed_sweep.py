@@ -28,7 +28,7 @@ from pathlib import Path
 import yaml
 
 from espl_jax import config as config_lib
-from espl_jax import run
+from espl_jax import run, rundir
 from espl_jax.cli import run_main
 from espl_jax.config import UserError
 
@@ -147,7 +147,7 @@ def sweep(env: str, seeds: list[int], mode: str, overrides: dict, out: Path) -> 
 
 def _episodes_per_seed(run_dir: Path) -> dict[int, int]:
     episodes: dict[int, int] = {}
-    for row in run.read_metrics(run_dir / run.METRICS_FILE):
+    for row in rundir.read_metrics(run_dir / rundir.METRICS_FILE):
         episodes[row["seed"]] = max(episodes.get(row["seed"], 0), row["episodes"])
     return episodes
 

@@ -68,8 +68,7 @@ from brax.training.agents.sac import networks as sac_networks
 from brax.training.agents.sac import train as brax_sac
 from brax.training.types import Transition
 
-import envs
-from espl_jax import config
+from espl_jax import config, envs
 from espl_jax.trainer import Trainer
 
 ENV = "inverted_double_pendulum"

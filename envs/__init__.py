@@ -2,7 +2,7 @@
 
 Usage::
 
-    import envs
+    from espl_jax import envs
     env = envs.make("pendulum")
     obs, state = env.reset(key, env.default_params)
     obs, state, reward, terminated, truncated, info = env.step(key, state, action, params)
@@ -15,11 +15,11 @@ of the env's params with a leading task axis::
 
 To add an environment, add ``name -> factory`` to ``_REGISTRY`` below (or call ``register``). A
 factory is any callable returning an ``Environment``; keep heavy imports (MJX, Box2D) inside the
-factory so ``import envs`` stays cheap (``envs.box2d`` imports gymnasium only when an env is
-built)::
+factory so ``from espl_jax import envs`` stays cheap (``envs.box2d`` imports gymnasium only when
+an env is built)::
 
     def _hopper(**kwargs):
-        from envs.hopper import Hopper
+        from espl_jax.envs.hopper import Hopper
 
         return Hopper(**kwargs)
 """
@@ -28,12 +28,12 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from envs import box2d, tasks
-from envs.base import Environment, time_limit
-from envs.box2d import HostEnv
-from envs.classic import CartPole, MountainCar, Pendulum
-from envs.physics import PHYSICS, with_physics
-from envs.tasks import TaskFamily
+from espl_jax.envs import box2d, tasks
+from espl_jax.envs.base import Environment, time_limit
+from espl_jax.envs.box2d import HostEnv
+from espl_jax.envs.classic import CartPole, MountainCar, Pendulum
+from espl_jax.envs.physics import PHYSICS, with_physics
+from espl_jax.envs.tasks import TaskFamily
 
 # A registry entry builds either a functional JAX env or, for the Box2D tasks, a ``HostEnv``: a
 # description of a gymnasium env that the trainer steps on the host (see envs/box2d.py).
@@ -44,7 +44,7 @@ def _mjx_factory(name: str) -> EnvFactory:
     """A factory that imports ``envs.mjx`` (and with it MuJoCo/MJX) only when called."""
 
     def factory(physics: str = "mjx", **kwargs) -> Environment:
-        from envs.mjx import MJX_ENVS
+        from espl_jax.envs.mjx import MJX_ENVS
 
         return with_physics(MJX_ENVS[name](**kwargs), physics)
 

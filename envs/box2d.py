@@ -10,7 +10,8 @@ gymnasium envs on demand. The trainer steps them through a gymnasium vector env,
 * ``bipedalwalker``: ``gymnasium.make("BipedalWalker-v3")`` (24 observations, 4 actions in [-1, 1],
   1600-step limit).
 
-gymnasium (and Box2D) is imported only when an env is built, so ``import envs`` stays cheap.
+gymnasium (and Box2D) is imported only when an env is built, so ``from espl_jax import envs``
+stays cheap.
 """
 
 from __future__ import annotations

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from envs.base import Environment, PRNGKey, StepOutput, time_limit
+from espl_jax.envs.base import Environment, PRNGKey, StepOutput, time_limit
 
 # --------------------------------------------------------------------------------------------
 # CartPole (DSO continuous)

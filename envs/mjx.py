@@ -54,7 +54,7 @@ from flax import struct
 with contextlib.redirect_stdout(None):
     from mujoco import mjx
 
-from envs.base import Environment, PRNGKey, StepOutput, time_limit
+from espl_jax.envs.base import Environment, PRNGKey, StepOutput, time_limit
 
 
 def gymnasium_xml_path(filename: str) -> str:

@@ -36,8 +36,8 @@ import mujoco
 import numpy as np
 from flax import struct
 
-from envs.base import Environment, PRNGKey, StepOutput, time_limit
-from envs.mjx import MjxEnv, MjxParams
+from espl_jax.envs.base import Environment, PRNGKey, StepOutput, time_limit
+from espl_jax.envs.mjx import MjxEnv, MjxParams
 
 # The MjxParams fields that are model fields (a family's params may carry task terms too, such
 # as cheetah's target velocity, which only the reward reads).

@@ -17,7 +17,7 @@ def with_physics(env: Any, physics: str) -> Any:
     if physics not in PHYSICS:
         raise ValueError(f"unknown physics {physics!r}; choose one of {', '.join(PHYSICS)}")
     if physics == "native":
-        from envs.native import NativeEnv
+        from espl_jax.envs.native import NativeEnv
 
         return NativeEnv(env)
     return env

@@ -26,7 +26,7 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.wrappers import TimeLimit
 
-from envs import box2d
+from espl_jax.envs import box2d
 
 
 class ContinuousCartPole(gymnasium.Env):

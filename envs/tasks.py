@@ -22,7 +22,8 @@ Families (the registry ``FAMILIES``; ``envs.make_family(name)``):
 * ``cheetah_vel_ood``: HalfCheetah with a target velocity (OOD test).
 * ``lunarlander_params``: gymnasium's LunarLanderContinuous with random gravity (host env).
 
-MJX and gymnasium are imported only when a family is built, so ``import envs`` stays cheap.
+MJX and gymnasium are imported only when a family is built, so ``from espl_jax import envs``
+stays cheap.
 """
 
 from __future__ import annotations
@@ -37,11 +38,11 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from envs import box2d
-from envs.base import Environment, PRNGKey
-from envs.box2d import HostEnv
-from envs.classic import CartPole, CartPoleParams
-from envs.physics import with_physics
+from espl_jax.envs import box2d
+from espl_jax.envs.base import Environment, PRNGKey
+from espl_jax.envs.box2d import HostEnv
+from espl_jax.envs.classic import CartPole, CartPoleParams
+from espl_jax.envs.physics import with_physics
 
 Params = Any
 Split = Literal["train", "test"]
@@ -398,7 +399,7 @@ def _cartpole_fl_ood() -> TaskFamily:
 
 def _mjx_family(name: str, env_name: str) -> Callable[..., TaskFamily]:
     def factory(physics: str = "mjx") -> TaskFamily:
-        from envs.mjx import MJX_ENVS
+        from espl_jax.envs.mjx import MJX_ENVS
 
         env = with_physics(MJX_ENVS[env_name](horizon=META_HORIZON), physics)
         return MjxPhysicsFamily(name, env, 40, 10)
@@ -408,7 +409,7 @@ def _mjx_family(name: str, env_name: str) -> Callable[..., TaskFamily]:
 
 
 def _cheetah_vel_ood(physics: str = "mjx") -> TaskFamily:
-    from envs.mjx import HalfCheetahVel
+    from espl_jax.envs.mjx import HalfCheetahVel
 
     return CheetahVelOOD(
         "cheetah_vel_ood",

@@ -38,10 +38,9 @@ import jax.numpy as jnp
 import numpy as np
 import sympy as sp
 
-import envs
 from espl_jax import config as config_lib
+from espl_jax import envs, run, rundir, runlock
 from espl_jax import expression as ex
-from espl_jax import run, runlock
 from espl_jax.cli import check_path, run_main
 from espl_jax.config import UserError
 
@@ -63,7 +62,7 @@ FIXED_POINT_TOLERANCE = 1e-5
 
 def best_seed(run_dir: str | Path) -> int:
     """The seed eval.json names as best (0 when the run has no eval.json yet)."""
-    path = Path(run_dir) / run.EVAL_FILE
+    path = Path(run_dir) / rundir.EVAL_FILE
     return int(json.loads(path.read_text()).get("best_seed", 0)) if path.is_file() else 0
 
 
@@ -85,7 +84,7 @@ def exported_expressions(run_dir: str | Path, seed: int | None = None) -> list[s
     if not 0 <= seed < trainer.config.seeds:
         raise UserError(f"--seed must be in [0, {trainer.config.seeds - 1}]")
     actor = jax.tree.map(lambda x: np.asarray(x[seed]), state.actor)
-    return run.export_expressions(trainer, actor)
+    return ex.export_expressions(trainer, actor)
 
 
 # --------------------------------------------------------------------------------------------
@@ -142,7 +141,7 @@ def equilibrium(env: Any, params: Any) -> Equilibrium:
     check_has_equilibrium(env.name)
     t0 = jnp.zeros((), jnp.int32)
     if env.name == "cartpole":
-        from envs.classic import CartPoleState
+        from espl_jax.envs.classic import CartPoleState
 
         return Equilibrium(
             names=("x", "x_dot", "theta", "theta_dot"),
@@ -155,7 +154,7 @@ def equilibrium(env: Any, params: Any) -> Equilibrium:
             obs=env._obs,
         )
     if env.name == "pendulum":
-        from envs.classic import PendulumState
+        from espl_jax.envs.classic import PendulumState
 
         return Equilibrium(
             names=("theta", "theta_dot"),
@@ -170,7 +169,7 @@ def equilibrium(env: Any, params: Any) -> Equilibrium:
     # MJX pendula: the state is (qpos, qvel); every joint is a slider or a hinge (nq == nv)
     import mujoco
 
-    from envs.mjx import MjxState
+    from espl_jax.envs.mjx import MjxState
 
     model = env.model
     nq, nv = int(model.nq), int(model.nv)
@@ -403,11 +402,11 @@ def main(argv: list[str] | None = None) -> int:
     result = closed_loop(envs.make(config.env), exprs, tolerance=args.tol)
     formula = ex.to_text(exprs)
     print(format_report(result, formula))
-    eval_path = run_dir / run.EVAL_FILE
+    eval_path = run_dir / rundir.EVAL_FILE
     with runlock.hold(run_dir):  # eval.json is read and rewritten
         record = json.loads(eval_path.read_text()) if eval_path.is_file() else {}
         record["stability"] = {**result, "seed": seed, "formula": formula}
-        run.write_json(eval_path, record)
+        rundir.write_json(eval_path, record)
     return 0
 
 

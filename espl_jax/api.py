@@ -7,7 +7,7 @@ command line's config resolution: defaults < configs/ENV.yaml < ``config`` file 
 
 Thin by design: every value is read from the run directory's files or computed by the functions
 the command-line tools use (the hall of fame's exact rows, ``halloffame.pick``; ``run.restore``,
-``run.exported_actors`` and ``run.export_expressions`` as at the end of training;
+``run.exported_actors`` and ``ex.export_expressions`` as at the end of training;
 ``meta.task_expressions``), so the formula of :meth:`Run.policy` is the one the run's
 ``policy.py`` evaluates, and :meth:`Run.pick` chooses as ``python -m espl_jax.export --pick``.
 Nothing here writes to the run directory. NOT jittable, except what :meth:`Formula.to_jax` returns.
@@ -29,8 +29,8 @@ import jax.numpy as jnp
 import numpy as np
 import sympy as sp
 
-import envs
 from espl_jax import config as config_lib
+from espl_jax import envs, rundir
 from espl_jax import expression as ex
 from espl_jax import halloffame as hof
 from espl_jax import run as run_lib
@@ -201,10 +201,10 @@ class Run:
         Raises:
             UserError: the run has no eval.json (training has not finished) or it is corrupt.
         """
-        record = run_lib.read_eval(self.path)
+        record = rundir.read_eval(self.path)
         if record is None:
             raise UserError(
-                f"{self.path} has no {run_lib.EVAL_FILE}: its training has not finished "
+                f"{self.path} has no {rundir.EVAL_FILE}: its training has not finished "
                 f"(python -m espl_jax.train --resume {self.path})"
             )
         return record
@@ -352,7 +352,7 @@ class Run:
     def _exported_row(self, seed: int) -> tuple[list[sp.Expr], dict[str, Any]] | None:
         """The hall-of-fame row of the formula eval.json says the run exported for ``seed``:
         its expressions and where it comes from; None without eval.json or a kept row."""
-        record = run_lib.read_eval(self.path)
+        record = rundir.read_eval(self.path)
         path = self.path / hof.FORMULAS_FILE
         if record is None or not path.is_file():
             return None
@@ -374,7 +374,7 @@ class Run:
         """``seed``'s exported formula rebuilt from the newest checkpoint (``run.finish``'s way)."""
         actors, sources = run_lib.exported_actors(self._trainer, self._state)
         actor = jax.tree.map(lambda x: np.asarray(x[seed]), actors)
-        exprs = run_lib.export_expressions(self._trainer, actor)
+        exprs = ex.export_expressions(self._trainer, actor)
         return self._formula(exprs, seed=seed, exported=sources[seed])
 
     def _formula(self, exprs: Sequence[sp.Expr], **info: Any) -> Formula:
@@ -384,7 +384,7 @@ class Run:
 
     def _best_seed(self) -> int:
         """eval.json's best seed; 0 for a run without eval.json, as the command line does."""
-        record = run_lib.read_eval(self.path)
+        record = rundir.read_eval(self.path)
         return record.get("best_seed", 0) if record else 0
 
     def _check_seed(self, seed: int) -> None:

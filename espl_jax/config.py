@@ -443,7 +443,7 @@ def resolve(
 
 
 def _check_known_env(name: str) -> None:
-    import envs
+    from espl_jax import envs
 
     if name not in envs.KNOWN_ENVS and not envs.is_family(name):
         raise UserError(

@@ -6,8 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-import envs
-from espl_jax import evaluation, run, runlock
+from espl_jax import envs, evaluation, run, rundir, runlock
 from espl_jax.cli import check_path, run_main
 from espl_jax.config import UserError
 
@@ -42,12 +41,12 @@ def main(argv: list[str] | None = None) -> int:
             "evaluation of the same formula"
         )
     with runlock.hold(run_dir):  # eval.json is read here and rewritten below
-        record = run.read_eval(run_dir) or {}  # first: a corrupt eval.json is never overwritten
-        policy = evaluation.load_policy(run_dir / run.POLICY_FILE)
+        record = rundir.read_eval(run_dir) or {}  # first: a corrupt eval.json is never overwritten
+        policy = evaluation.load_policy(run_dir / rundir.POLICY_FILE)
         returns = evaluation.rollout_returns(policy.act, config.env, args.episodes, args.seed)
         summary = evaluation.summary(returns)
         record["reference_eval"] = {**summary, "first_seed": args.seed}
-        run.write_json(run_dir / run.EVAL_FILE, record)
+        rundir.write_json(run_dir / rundir.EVAL_FILE, record)
     print(
         f"{config.env}: {summary['mean']:.2f} ± {summary['std']:.2f} over "
         f"{summary['episodes']} episodes (min {summary['min']:.2f}, max {summary['max']:.2f})"

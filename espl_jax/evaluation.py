@@ -9,8 +9,8 @@ from types import ModuleType
 
 import numpy as np
 
-from envs.reference import REFERENCE_ENVS, reference_env
 from espl_jax.config import UserError
+from espl_jax.envs.reference import REFERENCE_ENVS, reference_env
 
 
 def load_policy(path: str | Path) -> ModuleType:

@@ -18,7 +18,7 @@ import numpy as np
 
 from espl_jax import expression as ex
 from espl_jax import halloffame as hof
-from espl_jax import run
+from espl_jax import run, rundir
 from espl_jax.cli import check_path, run_main
 from espl_jax.config import Config, UserError
 
@@ -72,14 +72,14 @@ def main(argv: list[str] | None = None) -> int:
     record = None
     if seed is None or trainer.meta:
         try:
-            record = run.read_eval(args.run_dir)
+            record = rundir.read_eval(args.run_dir)
         except UserError as err:
             raise UserError(f"{err}; give --seed to export a seed without it") from None
     if seed is None:
         seed = record.get("best_seed", 0) if record else 0
         if not isinstance(seed, int) or isinstance(seed, bool):
             raise UserError(
-                f"{Path(args.run_dir) / run.EVAL_FILE} has a bad best_seed ({seed!r}); "
+                f"{Path(args.run_dir) / rundir.EVAL_FILE} has a bad best_seed ({seed!r}); "
                 "give --seed to export a seed without it"
             )
     if not 0 <= seed < trainer.config.seeds:
@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
         if seed != record.get("best_seed"):
             raise UserError("eval.json holds the adapted latents of the best seed only")
         actor = trainer.task_policy(actor, np.asarray(tasks[args.task]["z"]))
-    exprs = run.export_expressions(trainer, actor)
+    exprs = ex.export_expressions(trainer, actor)
     write(exprs, trainer.env, args.format, args.output)
     return 0
 
@@ -137,13 +137,13 @@ def pick(args: argparse.Namespace, config: Config) -> int:
     env = run.Trainer(config).env
     out = Path(args.output) if args.output is not None else Path(args.run_dir) / PICK_DIR
     out.mkdir(parents=True, exist_ok=True)
-    (out / run.EXPRESSION_FILE).write_text(ex.to_text(exprs) + "\n")
+    (out / rundir.EXPRESSION_FILE).write_text(ex.to_text(exprs) + "\n")
     source = ex.to_python(exprs, env.obs_dim, env.action_low, env.action_high)
-    (out / run.POLICY_FILE).write_text(source)
+    (out / rundir.POLICY_FILE).write_text(source)
     print(
         f"picked iteration {chosen['iteration']}, seed {chosen['seed']}: selection return "
         f"{chosen['selection_return']:.2f}, length {chosen['length']:.0f}; wrote "
-        f"{out / run.EXPRESSION_FILE} and {out / run.POLICY_FILE}"
+        f"{out / rundir.EXPRESSION_FILE} and {out / rundir.POLICY_FILE}"
     )
     print(ex.to_text(exprs))
     return 0

@@ -24,6 +24,7 @@ import operator
 import re
 from collections.abc import Callable, Sequence
 from functools import cache, reduce
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
@@ -34,6 +35,9 @@ from sympy.functions.elementary.trigonometric import TrigonometricFunction
 from espl_jax import operators as ops
 from espl_jax.selector import EXPORT_WEIGHT_THRESHOLD
 from espl_jax.symbolic import SymbolicNetwork
+
+if TYPE_CHECKING:
+    from espl_jax.trainer import Trainer
 
 # Readable expressions longer than this are not passed to sympy.simplify, whose cost grows
 # steeply with size (measured on 2 cores: length 5 in 0.4 s, length 116 in ~20 s); they are still
@@ -200,6 +204,13 @@ def network_expressions(
             x = x + outputs if network.layout.dense else outputs
         exprs.append(_affine(weights[-1][a], biases[-1][a], x)[0])
     return exprs
+
+
+def export_expressions(trainer: Trainer, actor_params: dict) -> list:
+    """Protected sympy expressions of one seed's deterministic symbolic policy."""
+    network = trainer.actor.symbolic
+    probs = actor_params["probs"] if trainer.actor.uses_selector else None
+    return network_expressions(network, actor_params["mean"], probs)
 
 
 def _affine(w: np.ndarray, b: np.ndarray, x: list[sp.Expr]) -> list[sp.Expr]:

@@ -32,6 +32,7 @@ import numpy as np
 import sympy as sp
 
 from espl_jax import expression as ex
+from espl_jax import rundir
 from espl_jax.config import UserError
 
 FORMULAS_FILE = "formulas.jsonl"
@@ -81,9 +82,7 @@ def append(path: Path, rows: list[dict[str, Any]]) -> None:
 
 def read(path: str | Path) -> list[dict[str, Any]]:
     """The rows of a formulas.jsonl; a last line cut short by a kill is skipped."""
-    from espl_jax.run import read_metrics  # the same tolerant JSONL reader
-
-    return read_metrics(path)
+    return rundir.read_metrics(path)  # the same tolerant JSONL reader
 
 
 def expressions(row: dict[str, Any]) -> list[sp.Expr]:
@@ -149,10 +148,8 @@ def plot(path: Path, out: Path, title: str) -> None:
 
 def seed_rows(trainer, actors: Any, returns: np.ndarray, **fields: Any) -> list[dict[str, Any]]:
     """One row per seed of seed-stacked actor params (numpy)."""
-    from espl_jax.run import export_expressions
-
     rows = []
     for s in range(returns.shape[0]):
         actor = jax.tree.map(lambda x, s=s: np.asarray(x[s]), actors)
-        rows.append(row(export_expressions(trainer, actor), returns[s], seed=s, **fields))
+        rows.append(row(ex.export_expressions(trainer, actor), returns[s], seed=s, **fields))
     return rows

@@ -24,9 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from espl_jax import evaluation, faults, rollout
+from espl_jax import evaluation, faults, rollout, rundir
 from espl_jax import expression as ex
-from espl_jax import run as run_lib
 from espl_jax.sac import TrainState
 from espl_jax.symbolic import live_paths
 from espl_jax.trainer import Trainer, gather
@@ -39,6 +38,16 @@ COEFFICIENTS_FILE = "coefficients.png"
 FRESH_EPISODES = 20
 
 
+def adapter(trainer: Trainer, task_params: Any):
+    """Meta-RL: PEARL's protocol on ``task_params`` [N], (state [S], keys [S, 2]) -> Adapted
+    [S, N, runs]; in JAX, or on the host for gymnasium families."""
+    if trainer.on_host:
+        from espl_jax.host_meta import HostAdapter
+
+        return HostAdapter(trainer, task_params)
+    return lambda state, keys: trainer.compiled_adapt(state, task_params, keys)
+
+
 def write_tasks(trainer: Trainer, run_dir: Path) -> None:
     train, test = trainer.tasks
     family = trainer.family
@@ -48,7 +57,7 @@ def write_tasks(trainer: Trainer, run_dir: Path) -> None:
         "train": family.describe(train),
         "test": family.describe(test),
     }
-    run_lib.write_json(run_dir / TASKS_FILE, record)
+    rundir.write_json(run_dir / TASKS_FILE, record)
 
 
 def _seed(tree: Any, s: int) -> Any:
@@ -67,12 +76,12 @@ def finish(
     write_tasks(trainer, run_dir)
 
     keys = jax.vmap(jax.random.fold_in, (0, None))
-    test = gather(run_lib.adapter(trainer, test_params)(state, keys(state.key, 3)))
+    test = gather(adapter(trainer, test_params)(state, keys(state.key, 3)))
     faults.kill_point("protocol")  # between the test tasks' protocol and the training tasks'
     # PEARL also evaluates on as many training tasks as there are test tasks.
     n = min(family.n_test, family.n_train)
     subset = jax.tree.map(lambda x: x[:n], train_params)
-    train = gather(run_lib.adapter(trainer, subset)(state, keys(state.key, 2)))
+    train = gather(adapter(trainer, subset)(state, keys(state.key, 2)))
     test_returns = np.asarray(test.final_return)  # [S, tasks, runs]
     train_returns = np.asarray(train.final_return)
     best = int(np.argmax(train_returns.mean(axis=(1, 2)))) if cfg.seeds > 1 else 0
@@ -91,7 +100,7 @@ def finish(
             }
         )
     result: dict[str, Any] = {
-        **run_lib.result_header(trainer, state, best, train_seconds),
+        **rundir.result_header(trainer, state, best, train_seconds),
         "protocol": {
             "runs_per_task": cfg.eval_runs,
             "steps_per_run": cfg.eval_steps,
@@ -112,21 +121,21 @@ def finish(
     }
     if trainer.actor.symbolic is not None:
         policies = _export_test_tasks(trainer, state, best, result, run_dir)
-        run_lib.write_json(run_dir / run_lib.EVAL_FILE, {**result, "warnings": warnings})
+        rundir.write_json(run_dir / rundir.EVAL_FILE, {**result, "warnings": warnings})
         _fresh_episodes(trainer, state, best, result, policies, warnings)
         if cfg.env == "cartpole_fl_ood":
-            run_lib.warn_on_failure(
+            rundir.warn_on_failure(
                 warnings, "coefficient figure", coefficient_figure, trainer, state, best, run_dir
             )
     if warnings:
         result["warnings"] = warnings
-    run_lib.write_json(run_dir / run_lib.EVAL_FILE, result)
+    rundir.write_json(run_dir / rundir.EVAL_FILE, result)
     return result
 
 
 def task_expressions(trainer: Trainer, actor_params: dict, z) -> list:
     """The protected sympy expressions of the CSP formula at latent z."""
-    return run_lib.export_expressions(trainer, trainer.task_policy(actor_params, np.asarray(z)))
+    return ex.export_expressions(trainer, trainer.task_policy(actor_params, np.asarray(z)))
 
 
 def _export_test_tasks(
@@ -139,7 +148,7 @@ def _export_test_tasks(
     lengths, paths, files = [], [], []
     for entry in result["test"]["per_task"]:
         policy = trainer.task_policy(actor, np.asarray(entry["z"]))
-        exprs = run_lib.export_expressions(trainer, policy)
+        exprs = ex.export_expressions(trainer, policy)
         mask = jax.tree.map(np.asarray, trainer.actor.eval_mask(policy))
         masked = [w * m for w, m in zip(policy["mean"]["w"], mask, strict=True)]
         entry["formula"] = ex.to_text(exprs)
@@ -149,10 +158,10 @@ def _export_test_tasks(
         paths.append(entry["selected_paths"])
         directory = run_dir / TEST_TASKS_DIR / str(entry["task"])
         directory.mkdir(parents=True, exist_ok=True)
-        run_lib._write_atomic(directory / run_lib.EXPRESSION_FILE, entry["formula"] + "\n")
+        rundir.write_atomic(directory / rundir.EXPRESSION_FILE, entry["formula"] + "\n")
         source = ex.to_python(exprs, env.obs_dim, env.action_low, env.action_high)
-        run_lib._write_atomic(directory / run_lib.POLICY_FILE, source)
-        files.append(directory / run_lib.POLICY_FILE)
+        rundir.write_atomic(directory / rundir.POLICY_FILE, source)
+        files.append(directory / rundir.POLICY_FILE)
         faults.kill_point("test-task-export")  # after the first task's files
     result["length"] = float(np.mean(lengths))
     result["selected_paths_per_action"] = float(np.mean(paths))
@@ -212,7 +221,7 @@ def _fresh_policy_py(
             returns_all.append(returns.mean())
         result["test"]["policy_py_mean"] = float(np.mean(returns_all))
 
-    run_lib.warn_on_failure(warnings, "policy.py in the reference env", reference)
+    rundir.warn_on_failure(warnings, "policy.py in the reference env", reference)
 
 
 def coefficient_figure(trainer: Trainer, state: TrainState, best: int, run_dir: Path) -> None:

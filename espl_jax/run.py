@@ -1,28 +1,17 @@
-"""The host loop of a training run and its run directory. NOT jittable: I/O and logging only.
+"""The host loop of a training run. NOT jittable: I/O and logging only.
 
 Between compiled chunks the host logs metrics, draws the progress bar, evaluates the deterministic
 policy for the learning curve, and checkpoints. At the end it exports each seed's formula, picks
-the best seed by evaluating the exported formula, and writes the run directory. For host-stepped
-gymnasium envs (Box2D) the chunks and evaluations come from :mod:`espl_jax.host` instead of the
-compiled ones (``chunk_runner``, ``evaluator``); the run directory is the same:
-
-    config.yaml         the resolved config
-    metrics.jsonl       one row per iteration and seed (+ deterministic eval after each chunk)
-    learning_curve.png  return, L0 ratio, penalty and τ against env steps
-    checkpoints/        orbax checkpoints of the seed-stacked TrainState
-    expression.txt      the best seed's simplified formula, rounded for reading
-    policy.py           standalone act(obs) -> action in the env's own units
-    eval.json           returns of the exported policy, per seed and for the best one
+the best seed by evaluating the exported formula, and writes the run directory (its files and how
+they are written: :mod:`espl_jax.rundir`). For host-stepped gymnasium envs (Box2D) the chunks and
+evaluations come from :mod:`espl_jax.host` instead of the compiled ones (``chunk_runner``,
+``evaluator``); the run directory is the same.
 """
 
 from __future__ import annotations
 
 import contextlib
 import itertools
-import json
-import math
-import os
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -33,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from espl_jax import checkpoint, evaluation, faults, host, replay, runlock
+from espl_jax import checkpoint, evaluation, faults, host, meta, replay, rundir, runlock
 from espl_jax import config as config_lib
 from espl_jax import expression as ex
 from espl_jax import halloffame as hof
@@ -41,12 +30,6 @@ from espl_jax.config import Config, UserError
 from espl_jax.sac import TrainState
 from espl_jax.trainer import Trainer, gather
 
-CHECKPOINT_DIR = "checkpoints"
-METRICS_FILE = "metrics.jsonl"
-EVAL_FILE = "eval.json"
-POLICY_FILE = "policy.py"
-EXPRESSION_FILE = "expression.txt"
-CURVE_FILE = "learning_curve.png"
 # Metrics whose non-finite value means the run has diverged.
 LOSS_KEYS = ("critic_loss", "actor_loss", "penalty", "q")
 
@@ -154,19 +137,19 @@ def _train(
                 f"{run_dir} has already trained {start} iterations; --iterations must be at "
                 f"least {start} to resume it"
             )
-        _truncate_metrics(out / METRICS_FILE, start)
-        _truncate_metrics(out / hof.FORMULAS_FILE, start)
+        rundir.truncate_metrics(out / rundir.METRICS_FILE, start)
+        rundir.truncate_metrics(out / hof.FORMULAS_FILE, start)
         # Written after the checkpoint proved readable; a kill in between is harmless (the next
         # resume re-reads the checkpoint and fits its buffer again).
         if primary and config_lib.load(run_dir / "config.yaml") != config:
-            _write_atomic(run_dir / "config.yaml", config_lib.dump(config))
+            rundir.write_atomic(run_dir / "config.yaml", config_lib.dump(config))
     else:
-        if (run_dir / CHECKPOINT_DIR).exists():
+        if (run_dir / rundir.CHECKPOINT_DIR).exists():
             raise UserError(f"{run_dir} already holds a run; use --resume {run_dir} or a new --out")
         _barrier("run directory checked")  # before any process creates checkpoints/
         run_dir.mkdir(parents=True, exist_ok=True)
-        _write_atomic(out / "config.yaml", config_lib.dump(config))
-        (out / METRICS_FILE).write_text("")
+        rundir.write_atomic(out / "config.yaml", config_lib.dump(config))
+        (out / rundir.METRICS_FILE).write_text("")
         if keeps_hall_of_fame(trainer):
             (out / hof.FORMULAS_FILE).write_text("")
         state = trainer.init_seeds()
@@ -184,7 +167,7 @@ def _train(
         unit="it",
         disable=not show_progress or not primary,
     )
-    with checkpoint.manager(run_dir / CHECKPOINT_DIR) as mngr, close:
+    with checkpoint.manager(run_dir / rundir.CHECKPOINT_DIR) as mngr, close:
         if not resume:  # a run killed before its first chunk ends resumes from here
             checkpoint.save(mngr, 0, state)
         if start == 0 and trainer.meta:  # PEARL's initial collection on every training task
@@ -199,22 +182,22 @@ def _train(
             diverged = _non_finite(metrics, iteration)
             if diverged:
                 # Keep the failing chunk's rows, so the user can see what diverged and how.
-                _append_metrics(out / METRICS_FILE, metrics, None)
+                rundir.append_metrics(out / rundir.METRICS_FILE, metrics, None)
                 raise TrainingDiverged(diverged + "; " + _kept(run_dir, mngr.latest_step()))
             eval_keys = jax.vmap(jax.random.fold_in, (0, None))(new_state.key, 1)
             eval_returns = gather(progress_eval(new_state, eval_keys))
-            _append_metrics(out / METRICS_FILE, metrics, eval_returns)
+            rundir.append_metrics(out / rundir.METRICS_FILE, metrics, eval_returns)
             state = new_state
             iteration += length
             if keeps_hall_of_fame(trainer):
                 state = record_hall_of_fame(trainer, state, eval_returns, iteration, out)
             checkpoint.save(mngr, iteration, state)
-            warn_on_failure(
-                warnings, "learning-curve plot", plot_learning_curve,
-                out / METRICS_FILE, out / CURVE_FILE, config.env,
+            rundir.warn_on_failure(
+                warnings, "learning-curve plot", rundir.plot_learning_curve,
+                out / rundir.METRICS_FILE, out / rundir.CURVE_FILE, config.env,
             )  # fmt: skip
             if keeps_hall_of_fame(trainer):
-                warn_on_failure(
+                rundir.warn_on_failure(
                     warnings, "hall-of-fame plot", hof.plot,
                     out / hof.FORMULAS_FILE, out / hof.PLOT_FILE, config.env,
                 )  # fmt: skip
@@ -278,7 +261,7 @@ def restore(run_dir: str | Path, trainer: Trainer) -> tuple[int, TrainState]:
         stored_capacity = stored["buffer"]["data"]["reward"].shape[-1]  # [seeds, tasks, cap]
         return with_capacity(template, stored_capacity)
 
-    step, state = checkpoint.restore_latest(Path(run_dir) / CHECKPOINT_DIR, like)
+    step, state = checkpoint.restore_latest(Path(run_dir) / rundir.CHECKPOINT_DIR, like)
     return step, trainer.place(with_capacity(state, capacity))
 
 
@@ -311,7 +294,7 @@ def progress_evaluator(trainer: Trainer):
     single task, ``progress_eval_episodes`` episodes of the exported formula; meta-RL, PEARL's
     protocol on every test task (the last trajectory's return, averaged over runs)."""
     if trainer.meta:
-        adapt = adapter(trainer, trainer.tasks[1])
+        adapt = meta.adapter(trainer, trainer.tasks[1])
         return lambda state, keys: gather(adapt(state, keys).final_return).mean(axis=-1)
     evaluate = evaluator(trainer, trainer.config.progress_eval_episodes)
     return lambda state, keys: gather(evaluate(state.actor, keys))
@@ -327,16 +310,6 @@ def warmup(trainer: Trainer, state: TrainState) -> TrainState:
         state = trainer.compiled_warmup()(state)
     faults.kill_point("warmup")  # nothing of it is written yet (JAX: it may still be running)
     return state
-
-
-def adapter(trainer: Trainer, task_params: Any):
-    """Meta-RL: PEARL's protocol on ``task_params`` [N], (state [S], keys [S, 2]) -> Adapted
-    [S, N, runs]; in JAX, or on the host for gymnasium families."""
-    if trainer.on_host:
-        from espl_jax.host_meta import HostAdapter
-
-        return HostAdapter(trainer, task_params)
-    return lambda state, keys: trainer.compiled_adapt(state, task_params, keys)
 
 
 def evaluator(trainer: Trainer, episodes: int):
@@ -366,8 +339,6 @@ def finish(
     # evaluations below take numpy input and shard it over the devices again.
     state = gather(state.replace(buffer=None, encoder_buffer=None))
     if trainer.meta:
-        from espl_jax import meta
-
         return meta.finish(trainer, state, run_dir, train_seconds, list(warnings or []))
     cfg, env = trainer.config, trainer.env
     warnings = list(warnings or [])
@@ -391,14 +362,14 @@ def finish(
         if source[s] == "best":
             entry["exported_iteration"] = int(state.anchor_iteration[s])
         if trainer.actor.symbolic is not None:
-            exprs = export_expressions(trainer, actor)
+            exprs = ex.export_expressions(trainer, actor)
             formulas[s] = exprs
             entry["formula"] = ex.to_text(exprs)
             entry["length"] = ex.mean_complexity([ex.readable(e) for e in exprs])
         per_seed.append(entry)
 
     result: dict[str, Any] = {
-        **result_header(trainer, state, best, train_seconds),
+        **rundir.result_header(trainer, state, best, train_seconds),
         "jax_eval": per_seed[best]["jax_eval"],
         # where "jax_eval" ran: JAX envs in JAX, host (Box2D) envs in gymnasium
         "evaluated_in": "gymnasium" if trainer.on_host else "jax",
@@ -408,20 +379,20 @@ def finish(
         exprs = formulas[best]
         result["formula"] = per_seed[best]["formula"]
         result["length"] = per_seed[best]["length"]
-        _write_atomic(run_dir / EXPRESSION_FILE, ex.to_text(exprs) + "\n")
+        rundir.write_atomic(run_dir / rundir.EXPRESSION_FILE, ex.to_text(exprs) + "\n")
         source = ex.to_python(exprs, env.obs_dim, env.action_low, env.action_high)
-        _write_atomic(run_dir / POLICY_FILE, source)
-    _write_eval(run_dir, result, warnings)
+        rundir.write_atomic(run_dir / rundir.POLICY_FILE, source)
+    rundir.write_eval(run_dir, result, warnings)
     faults.kill_point("export")
     if best in formulas and cfg.reference_eval_episodes:
 
         def reference() -> None:
-            policy = evaluation.load_policy(run_dir / POLICY_FILE)
+            policy = evaluation.load_policy(run_dir / rundir.POLICY_FILE)
             returns = evaluation.rollout_returns(policy.act, cfg.env, cfg.reference_eval_episodes)
             result["reference_eval"] = evaluation.summary(returns)
 
-        warn_on_failure(warnings, "reference evaluation of policy.py", reference)
-        _write_eval(run_dir, result, warnings)
+        rundir.warn_on_failure(warnings, "reference evaluation of policy.py", reference)
+        rundir.write_eval(run_dir, result, warnings)
     return result
 
 
@@ -441,93 +412,11 @@ def exported_actors(trainer: Trainer, state: TrainState) -> tuple[Any, list[str]
     return actors, ["best" if a else "final" for a in has_anchor]
 
 
-def _write_eval(run_dir: Path, result: dict[str, Any], warnings: list[str]) -> None:
-    if warnings:
-        result["warnings"] = list(warnings)
-    write_json(run_dir / EVAL_FILE, result)
-
-
-def result_header(
-    trainer: Trainer, state: TrainState, best: int, train_seconds: float
-) -> dict[str, Any]:
-    """What every eval.json starts with: the run, its chosen seed, its budget, its devices."""
-    return {
-        "env": trainer.config.env,
-        "actor": trainer.config.actor,
-        "best_seed": best,  # index into the run's seeds (export, analyze)
-        "train_seed": trainer.config.seed + best,  # the --seed that trains it alone
-        "training": {
-            "episodes": int(state.episodes[best]),
-            "env_steps": int(state.env_steps[best]),
-            "iterations": int(state.iteration[best]),
-            "wall_seconds_training": round(train_seconds, 1),
-        },
-        "devices": trainer.device_info,
-        **({"physics": trainer.physics} if trainer.physics else {}),
-    }
-
-
-def write_json(path: Path, record: dict[str, Any]) -> None:
-    """A run-directory JSON file, written atomically."""
-    _write_atomic(path, json.dumps(record, indent=2) + "\n")
-
-
-def warn_on_failure(warnings: list[str], what: str, fn, *args) -> bool:
-    """Run an optional step; a failure becomes a warning (printed and recorded), not a crash."""
-    try:
-        fn(*args)
-        return True
-    except Exception as err:  # an optional step may fail in any way; the run is kept
-        message = f"{what} failed: {type(err).__name__}: {_first_line(err)}"
-        print(f"warning: {message}", file=sys.stderr)
-        warnings.append(message)
-        return False
-
-
-def _first_line(err: Exception) -> str:
-    lines = [line for line in str(err).splitlines() if line.strip()]
-    return (lines[0] if lines else "no message")[:300]
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    """Write a file so that a kill leaves either the old or the new content, never a part."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
-def export_expressions(trainer: Trainer, actor_params: dict) -> list:
-    """Protected sympy expressions of one seed's deterministic symbolic policy."""
-    network = trainer.actor.symbolic
-    probs = actor_params["probs"] if trainer.actor.uses_selector else None
-    return ex.network_expressions(network, actor_params["mean"], probs)
-
-
 def load_run(run_dir: str | Path) -> tuple[Trainer, TrainState, int]:
     """Config, trainer and newest checkpointed state of a run directory."""
     trainer = Trainer(saved_config(run_dir))
     step, state = restore(run_dir, trainer)
     return trainer, state, step
-
-
-def read_eval(run_dir: str | Path) -> dict[str, Any] | None:
-    """The run's eval.json, or None if it has none yet.
-
-    Raises:
-        UserError: eval.json exists but is not a JSON object (corrupt).
-    """
-    path = Path(run_dir) / EVAL_FILE
-    if not path.is_file():
-        return None
-    try:
-        record = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise UserError(
-            f"{path} is unreadable ({type(err).__name__}: {_first_line(err)})"
-        ) from None
-    if not isinstance(record, dict):
-        raise UserError(f"{path} is unreadable (not a JSON object)")
-    return record
 
 
 # Metrics ---------------------------------------------------------------------------------------
@@ -542,7 +431,7 @@ def _non_finite(metrics: dict, start: int) -> str | None:
             seed, offset = map(int, np.argwhere(bad)[0])
             return (
                 f"training stopped: {name} became non-finite at iteration {start + offset + 1} "
-                f"(seed {seed}); that chunk's metrics are in {METRICS_FILE}"
+                f"(seed {seed}); that chunk's metrics are in {rundir.METRICS_FILE}"
             )
     return None
 
@@ -550,104 +439,5 @@ def _non_finite(metrics: dict, start: int) -> str | None:
 def _kept(run_dir: Path, last_good: int | None) -> str:
     if last_good is None:
         return "no checkpoint had been written yet"
-    return f"the last good checkpoint (iteration {last_good}) is kept in {run_dir / CHECKPOINT_DIR}"
-
-
-def _append_metrics(path: Path, metrics: dict, eval_returns: np.ndarray | None) -> None:
-    seeds, length = np.asarray(metrics["iteration"]).shape
-    with path.open("a") as f:
-        for i in range(length):
-            for s in range(seeds):
-                row = {k: _scalar(v[s, i]) for k, v in metrics.items()}
-                row["seed"] = s
-                if i == length - 1 and eval_returns is not None:
-                    row["eval_return"] = float(eval_returns[s].mean())
-                f.write(json.dumps(row) + "\n")
-
-
-def _scalar(x: Any) -> float | int:
-    x = np.asarray(x)
-    return int(x) if np.issubdtype(x.dtype, np.integer) else float(x)
-
-
-def _truncate_metrics(path: Path, iteration: int) -> None:
-    """Drop rows written after the checkpoint a resumed run restarts from (and a partial last
-    line left by a kill mid-write)."""
-    if not path.exists():
-        return
-    rows = [r for r in read_metrics(path) if r["iteration"] <= iteration]
-    _write_atomic(path, "".join(json.dumps(r) + "\n" for r in rows))
-
-
-def read_metrics(path: str | Path) -> list[dict]:
-    """The rows of a metrics.jsonl. A last line cut short (a kill mid-write) is skipped.
-
-    Raises:
-        UserError: a row other than the last is not valid JSON (the file is corrupt).
-    """
-    path = Path(path)
-    try:
-        lines = [line for line in path.read_text().splitlines() if line.strip()]
-    except (OSError, UnicodeDecodeError) as err:
-        raise UserError(
-            f"{path} is unreadable ({type(err).__name__}: {_first_line(err)})"
-        ) from None
-    rows = []
-    for number, line in enumerate(lines, 1):
-        try:
-            row = json.loads(line)
-            if not isinstance(row, dict) or "iteration" not in row:
-                raise ValueError("not a metrics row")
-        except ValueError as err:
-            if number == len(lines):
-                break  # cut short by a kill while it was written: the checkpoint is older
-            raise UserError(f"{path} is corrupt at line {number} ({_first_line(err)})") from None
-        rows.append(row)
-    return rows
-
-
-def plot_learning_curve(metrics_path: Path, out: Path, title: str) -> None:
-    """Return (training episodes and deterministic eval), L0 ratio, penalty and τ vs env steps."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    rows = read_metrics(metrics_path)
-    if not rows:
-        return
-    fig, axes = plt.subplots(2, 2, figsize=(10, 7), sharex=True)
-    panels = [
-        ("train_return", "return", axes[0, 0]),
-        ("l0_ratio", "L0 ratio (E||m||0 / N)", axes[0, 1]),
-        ("penalty", "operator penalty", axes[1, 0]),
-        ("tau", "temperature τ", axes[1, 1]),
-    ]
-    seeds = sorted({r["seed"] for r in rows})
-    for s in seeds:
-        mine = [r for r in rows if r["seed"] == s]
-        steps = [r["env_steps"] for r in mine]
-        for key, label, ax in panels:
-            values = [
-                r[key] if r.get("episodes_finished", 1) or key != "train_return" else math.nan
-                for r in mine
-            ]
-            ax.plot(
-                steps,
-                values,
-                lw=1,
-                alpha=0.6 if key == "train_return" else 1.0,
-                label=f"seed {s} (training)" if key == "train_return" else f"seed {s}",
-            )
-            ax.set_ylabel(label)
-        evals = [(r["env_steps"], r["eval_return"]) for r in mine if "eval_return" in r]
-        if evals:
-            axes[0, 0].plot(*zip(*evals, strict=True), "o-", lw=2, label=f"seed {s} (formula)")
-    axes[0, 1].set_yscale("log")
-    for ax in axes[1]:
-        ax.set_xlabel("environment steps")
-    axes[0, 0].legend(fontsize=7)
-    fig.suptitle(f"ESPL on {title}")
-    fig.tight_layout()
-    fig.savefig(out, dpi=100)
-    plt.close(fig)
+    checkpoints = run_dir / rundir.CHECKPOINT_DIR
+    return f"the last good checkpoint (iteration {last_good}) is kept in {checkpoints}"

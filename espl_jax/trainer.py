@@ -30,8 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import envs
-from espl_jax import pearl, replay, rollout, selector
+from espl_jax import envs, pearl, replay, rollout, selector
 from espl_jax.config import Config, UserError
 from espl_jax.policies import META_ACTORS, SINGLE_TASK_ACTORS, Actor, make_actor
 from espl_jax.rollout import Rollout

@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 import sympy as sp
 
-import envs
-from espl_jax import analyze
+from espl_jax import analyze, envs
 from espl_jax import config as config_lib
 from espl_jax import expression as ex
 from espl_jax.cli import run_main

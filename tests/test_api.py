@@ -20,7 +20,7 @@ import sympy as sp
 import yaml
 
 import espl_jax
-from espl_jax import api, export, run
+from espl_jax import api, export, rundir
 from espl_jax import config as config_lib
 from espl_jax import halloffame as hof
 from espl_jax.config import UserError
@@ -75,7 +75,7 @@ def test_readme_example_gives_a_formula_an_act_and_a_table(example):
     trained = example["run"]
     assert isinstance(trained, api.Run) and trained.path.parent.name == "runs"
     assert all(isinstance(e, sp.Expr) for e in trained.formula())
-    reference = policy_py(trained.path / run.POLICY_FILE)
+    reference = policy_py(trained.path / rundir.POLICY_FILE)
     np.testing.assert_array_equal(example["action"], reference.act([0.0, 0.0, 0.05, 0.0]))
     assert len(trained.hall_of_fame) == 2  # one row per chunk (one seed)
     assert isinstance(example["short"], api.Formula)
@@ -87,12 +87,12 @@ def test_formula_is_sympy_in_the_observation_symbols(trained):
     assert len(exprs) == 1  # cartpole: one action
     assert exprs[0].free_symbols <= {sp.Symbol(f"x{i}", real=True) for i in range(4)}
     assert trained.policy().info["seed"] == trained.eval["best_seed"]
-    assert str(trained.policy()) == (trained.path / run.EXPRESSION_FILE).read_text().strip()
+    assert str(trained.policy()) == (trained.path / rundir.EXPRESSION_FILE).read_text().strip()
     assert trained.latex().startswith("a_{0} = ")
 
 
 def test_act_is_the_runs_policy_py(trained):
-    reference = policy_py(trained.path / run.POLICY_FILE)
+    reference = policy_py(trained.path / rundir.POLICY_FILE)
     obs = observations()
     got = np.array([trained.act(o) for o in obs])
     np.testing.assert_array_equal(got, np.array([reference.act(o) for o in obs]))
@@ -131,8 +131,8 @@ def test_pick_is_exports_pick(trained, tmp_path):
     assert (
         export.main([str(trained.path), "--pick", "shortest-within", "5", "-o", str(tmp_path)]) == 0
     )
-    assert str(picked) == (tmp_path / run.EXPRESSION_FILE).read_text().strip()
-    reference = policy_py(tmp_path / run.POLICY_FILE)
+    assert str(picked) == (tmp_path / rundir.EXPRESSION_FILE).read_text().strip()
+    reference = policy_py(tmp_path / rundir.POLICY_FILE)
     obs = observations(50)
     np.testing.assert_array_equal(picked.act_batch(obs), reference.act_batch(obs))
     kept = [r for r in hof.read(trained.path / hof.FORMULAS_FILE) if r["protected"] is not None]
@@ -148,7 +148,7 @@ def test_pick_refuses_what_export_refuses(trained, how, within):
 
 
 def test_eval_is_eval_json(trained):
-    assert trained.eval == json.loads((trained.path / run.EVAL_FILE).read_text())
+    assert trained.eval == json.loads((trained.path / rundir.EVAL_FILE).read_text())
     assert trained.config == config_lib.load(trained.path / "config.yaml")
 
 
@@ -235,8 +235,8 @@ def test_meta_run_tasks_and_adapted_formulas(jax_cache, tmp_path):
     for i in (0, len(per_task) - 1):
         adapted = csp.adapted(i)
         directory = csp.path / "test_tasks" / str(i)
-        assert str(adapted) == (directory / run.EXPRESSION_FILE).read_text().strip()
-        reference = policy_py(directory / run.POLICY_FILE)
+        assert str(adapted) == (directory / rundir.EXPRESSION_FILE).read_text().strip()
+        reference = policy_py(directory / rundir.POLICY_FILE)
         np.testing.assert_array_equal(adapted.act_batch(obs), reference.act_batch(obs))
     with pytest.raises(UserError, match="test task"):
         csp.adapted(len(per_task))

@@ -22,7 +22,7 @@ import yaml
 from conftest import TINY
 
 from espl_jax import config as config_lib
-from espl_jax import evaluate, export, run, train
+from espl_jax import evaluate, export, run, rundir, train
 from espl_jax.cli import run_main
 
 pytestmark = pytest.mark.usefixtures("jax_cache")
@@ -84,8 +84,8 @@ def set_config(**values) -> Callable[[Path], None]:
 
 
 def empty_checkpoints(run_dir: Path) -> None:
-    shutil.rmtree(run_dir / run.CHECKPOINT_DIR)
-    (run_dir / run.CHECKPOINT_DIR).mkdir()
+    shutil.rmtree(run_dir / rundir.CHECKPOINT_DIR)
+    (run_dir / rundir.CHECKPOINT_DIR).mkdir()
 
 
 def corrupt_checkpoints(keep_metadata: bool) -> Callable[[Path], None]:
@@ -94,7 +94,7 @@ def corrupt_checkpoints(keep_metadata: bool) -> Callable[[Path], None]:
 
     def damage(run_dir: Path) -> None:
         damaged = 0
-        for path in (run_dir / run.CHECKPOINT_DIR).rglob("*"):
+        for path in (run_dir / rundir.CHECKPOINT_DIR).rglob("*"):
             if path.is_file() and not (keep_metadata and path.name in metadata):
                 path.write_bytes(b"\x00garbage\xff" * 3)
                 damaged += 1
@@ -104,7 +104,7 @@ def corrupt_checkpoints(keep_metadata: bool) -> Callable[[Path], None]:
 
 
 def corrupt_metrics_middle(run_dir: Path) -> None:
-    path = run_dir / run.METRICS_FILE
+    path = run_dir / rundir.METRICS_FILE
     lines = path.read_text().splitlines()
     lines[1] = lines[1][: len(lines[1]) // 2]
     path.write_text("\n".join(lines) + "\n")
@@ -283,7 +283,7 @@ CASES: list[Case] = [
     Case("resume-bad-config-value", "train", ("--resume", "{run}"), ("gamma must be in (0, 1]",),
          damage=set_config(gamma=2.0)),
     Case("resume-without-checkpoints", "train", ("--resume", "{run}"),
-         ("checkpoints/ is missing",), damage=remove(run.CHECKPOINT_DIR)),
+         ("checkpoints/ is missing",), damage=remove(rundir.CHECKPOINT_DIR)),
     Case("resume-empty-checkpoints", "train", ("--resume", "{run}"),
          ("no complete checkpoint",), damage=empty_checkpoints),
     Case("resume-corrupt-checkpoint", "train", ("--resume", "{run}"),
@@ -299,15 +299,15 @@ CASES: list[Case] = [
     Case("evaluate-malformed-config", "evaluate", ("{run}",), ("cannot read config file",),
          damage=write("config.yaml", "env: [cartpole\n")),
     Case("evaluate-without-policy", "evaluate", ("{run}",), ("no exported policy",),
-         damage=remove(run.POLICY_FILE)),
+         damage=remove(rundir.POLICY_FILE)),
     Case("evaluate-broken-policy", "evaluate", ("{run}",), ("cannot load", "SyntaxError"),
-         damage=write(run.POLICY_FILE, "def act(obs:\n")),
+         damage=write(rundir.POLICY_FILE, "def act(obs:\n")),
     Case("evaluate-policy-without-act", "evaluate", ("{run}",), ("has no act(obs) function",),
-         damage=write(run.POLICY_FILE, "x = 1\n")),
+         damage=write(rundir.POLICY_FILE, "x = 1\n")),
     Case("evaluate-corrupt-eval-json", "evaluate", ("{run}",), ("eval.json is unreadable",),
-         damage=write(run.EVAL_FILE, '{"env": "cartpole", "jax_')),
+         damage=write(rundir.EVAL_FILE, '{"env": "cartpole", "jax_')),
     Case("evaluate-eval-json-not-an-object", "evaluate", ("{run}",),
-         ("eval.json is unreadable (not a JSON object)",), damage=write(run.EVAL_FILE, "[1]\n")),
+         ("eval.json is unreadable (not a JSON object)",), damage=write(rundir.EVAL_FILE, "[1]\n")),
     Case("evaluate-no-reference-env", "evaluate", ("{run}",),
          ("inverted_pendulum_swingup has no reference environment",),
          damage=as_env("inverted_pendulum_swingup")),
@@ -323,13 +323,13 @@ CASES: list[Case] = [
     Case("export-without-config", "export", ("{run}",), ("not a run directory",),
          damage=remove("config.yaml")),
     Case("export-without-checkpoints", "export", ("{run}",), ("checkpoints/ is missing",),
-         damage=remove(run.CHECKPOINT_DIR)),
+         damage=remove(rundir.CHECKPOINT_DIR)),
     Case("export-corrupt-checkpoint", "export", ("{run}",), ("is unreadable", "corrupt"),
          damage=corrupt_checkpoints(keep_metadata=False)),
     Case("export-corrupt-eval-json", "export", ("{run}",),
-         ("eval.json is unreadable", "give --seed"), damage=write(run.EVAL_FILE, "{")),
+         ("eval.json is unreadable", "give --seed"), damage=write(rundir.EVAL_FILE, "{")),
     Case("export-bad-best-seed", "export", ("{run}",), ("bad best_seed", "give --seed"),
-         damage=write(run.EVAL_FILE, '{"best_seed": "first"}\n')),
+         damage=write(rundir.EVAL_FILE, '{"best_seed": "first"}\n')),
     Case("export-seed-out-of-range", "export", ("{run}", "--seed", "7"),
          ("--seed must be in [0, 1]",)),
     Case("export-seed-negative", "export", ("{run}", "--seed", "-1"),
@@ -400,22 +400,22 @@ def test_metrics_line_cut_short_by_a_kill_is_dropped_on_resume(finished_run, tmp
     rows: resume drops it and finishes; every complete row is kept."""
     run_dir = tmp_path / "run"
     shutil.copytree(finished_run, run_dir)
-    metrics = run_dir / run.METRICS_FILE
+    metrics = run_dir / rundir.METRICS_FILE
     complete = metrics.read_text()
     metrics.write_text(complete + '{"iteration": 5, "seed": 0, "train_re')
     status, _, err = invoke(capfd, "train", "--resume", str(run_dir), "--no-progress")
     assert status == 0, err
     assert metrics.read_text() == complete
-    assert run.read_eval(run_dir)["best_seed"] in (0, 1)
+    assert rundir.read_eval(run_dir)["best_seed"] in (0, 1)
 
 
 def test_missing_eval_json_is_recreated_by_evaluate(finished_run, tmp_path, capfd):
     run_dir = tmp_path / "run"
     shutil.copytree(finished_run, run_dir)
-    (run_dir / run.EVAL_FILE).unlink()
+    (run_dir / rundir.EVAL_FILE).unlink()
     status, out, err = invoke(capfd, "evaluate", str(run_dir), "--episodes", "2")
     assert status == 0, err
-    record = json.loads((run_dir / run.EVAL_FILE).read_text())
+    record = json.loads((run_dir / rundir.EVAL_FILE).read_text())
     assert record["reference_eval"]["episodes"] == 2
     assert "cartpole:" in out
 
@@ -423,7 +423,7 @@ def test_missing_eval_json_is_recreated_by_evaluate(finished_run, tmp_path, capf
 def test_export_without_eval_json_exports_seed_0(finished_run, tmp_path, capfd):
     run_dir = tmp_path / "run"
     shutil.copytree(finished_run, run_dir)
-    (run_dir / run.EVAL_FILE).unlink()
+    (run_dir / rundir.EVAL_FILE).unlink()
     status, out, err = invoke(capfd, "export", str(run_dir), "--seed", "0")
     assert status == 0, err
     status_default, out_default, _ = invoke(capfd, "export", str(run_dir))

@@ -18,10 +18,9 @@ import pytest
 import yaml
 from conftest import TINY, TINY_MLP
 
-import envs
-from envs.reference import reference_env
 from espl_jax import config as config_lib
-from espl_jax import evaluation, host, run
+from espl_jax import envs, evaluation, host, run, rundir
+from espl_jax.envs.reference import reference_env
 from espl_jax.trainer import Trainer
 
 pytestmark = pytest.mark.usefixtures("jax_cache")
@@ -192,14 +191,14 @@ def test_host_run_resumes_from_its_checkpoint(stopped_mlp_run, tmp_path):
     run_dir = tmp_path / "run"
     shutil.copytree(stopped_mlp_run, run_dir)
     cfg = tiny_mlp()
-    stopped_rows = run.read_metrics(run_dir / run.METRICS_FILE)
+    stopped_rows = rundir.read_metrics(run_dir / rundir.METRICS_FILE)
     assert [r["iteration"] for r in stopped_rows] == [1, 1]
     _, stopped, step = run.load_run(run_dir)
     assert step == 1 and stopped.rollout.env_state is None
     np.testing.assert_array_equal(stopped.iteration, [1, 1])
 
     result = run.train(cfg, run_dir, resume=True, show_progress=False)
-    rows = run.read_metrics(run_dir / run.METRICS_FILE)
+    rows = rundir.read_metrics(run_dir / rundir.METRICS_FILE)
     assert [r for r in rows if r["iteration"] == 1] == stopped_rows
     assert sorted((r["iteration"], r["seed"]) for r in rows) == [(1, 0), (1, 1), (2, 0), (2, 1)]
     assert all("eval_return" in r for r in rows)  # chunks of one iteration: eval after each
@@ -212,13 +211,13 @@ def test_host_run_resumes_from_its_checkpoint(stopped_mlp_run, tmp_path):
     first = np.asarray(state.buffer.data.obs[:, 0, 64])  # [seeds, task, step, obs]
     assert np.all(np.abs(first[:, 1] - 1.4) < 0.1)  # LunarLander starts at the top (y ≈ 1.4)
 
-    record = json.loads((run_dir / run.EVAL_FILE).read_text())
+    record = json.loads((run_dir / rundir.EVAL_FILE).read_text())
     assert record == result and record["env"] == "lunarlander" and record["actor"] == "mlp"
     assert record["jax_eval"]["episodes"] == cfg.eval_episodes
     assert record["evaluated_in"] == "gymnasium"
     assert record["training"]["env_steps"] == cfg.total_env_steps
-    assert "formula" not in record and not (run_dir / run.POLICY_FILE).exists()
-    assert (run_dir / run.CURVE_FILE).read_bytes().startswith(b"\x89PNG\r\n\x1a\n")
+    assert "formula" not in record and not (run_dir / rundir.POLICY_FILE).exists()
+    assert (run_dir / rundir.CURVE_FILE).read_bytes().startswith(b"\x89PNG\r\n\x1a\n")
 
 
 def test_non_finite_loss_stops_a_host_run(stopped_mlp_run, tmp_path):
@@ -231,7 +230,7 @@ def test_non_finite_loss_stops_a_host_run(stopped_mlp_run, tmp_path):
     with pytest.raises(run.TrainingDiverged, match="last good checkpoint \\(iteration 1\\)"):
         run.train(config_lib.load(path), run_dir, resume=True, show_progress=False)
     assert run.load_run(run_dir)[2] == 1
-    assert not (run_dir / run.EVAL_FILE).exists()
+    assert not (run_dir / rundir.EVAL_FILE).exists()
 
 
 def test_host_evaluator_plays_distinct_seeded_episodes():
@@ -258,7 +257,7 @@ def test_run_writes_every_artifact(full_run):
     run_dir, result = full_run
     cfg = tiny()
     assert config_lib.load(run_dir / "config.yaml") == cfg
-    rows = run.read_metrics(run_dir / run.METRICS_FILE)
+    rows = rundir.read_metrics(run_dir / rundir.METRICS_FILE)
     assert sorted((r["iteration"], r["seed"]) for r in rows) == [
         (i, s) for i in range(1, cfg.iterations + 1) for s in range(cfg.seeds)
     ]
@@ -266,18 +265,18 @@ def test_run_writes_every_artifact(full_run):
         assert r["env_steps"] == r["iteration"] * cfg.steps_per_iteration
         assert all(math.isfinite(r[k]) for k in ("critic_loss", "actor_loss", "penalty", "q"))
         assert ("eval_return" in r) == (r["iteration"] % cfg.chunk_iterations == 0)
-    assert (run_dir / run.CURVE_FILE).read_bytes().startswith(b"\x89PNG\r\n\x1a\n")
-    steps = sorted(int(p.name) for p in (run_dir / run.CHECKPOINT_DIR).iterdir())
+    assert (run_dir / rundir.CURVE_FILE).read_bytes().startswith(b"\x89PNG\r\n\x1a\n")
+    steps = sorted(int(p.name) for p in (run_dir / rundir.CHECKPOINT_DIR).iterdir())
     assert steps[-1] == cfg.iterations
 
-    record = json.loads((run_dir / run.EVAL_FILE).read_text())
+    record = json.loads((run_dir / rundir.EVAL_FILE).read_text())
     assert record == result and record["env"] == "lunarlander"
     best = record["best_seed"]
     assert record["jax_eval"] == record["per_seed"][best]["jax_eval"]
     assert record["jax_eval"]["episodes"] == cfg.eval_episodes
     assert record["training"]["env_steps"] == cfg.total_env_steps
     assert record["training"]["iterations"] == cfg.iterations
-    expression = (run_dir / run.EXPRESSION_FILE).read_text()
+    expression = (run_dir / rundir.EXPRESSION_FILE).read_text()
     assert expression.startswith("a0 = ") and "a1 = " in expression
     assert record["formula"] == expression.strip()
     assert record["reference_eval"]["episodes"] == cfg.reference_eval_episodes
@@ -302,7 +301,7 @@ def test_policy_py_is_the_network_and_runs_in_gymnasium(full_run):
         np.asarray(jax.vmap(actor.deterministic, (None, None, 0))(
             params, actor.eval_mask(params), obs))
     )  # fmt: skip
-    policy = evaluation.load_policy(run_dir / run.POLICY_FILE)
+    policy = evaluation.load_policy(run_dir / rundir.POLICY_FILE)
     got = np.array([policy.act(o) for o in obs])
     assert got.shape == (len(obs), 2)
     np.testing.assert_allclose(got, expected, atol=1e-4)

@@ -8,9 +8,8 @@ from pathlib import Path
 import pytest
 from conftest import TINY, TINY_MLP
 
-import envs
 from espl_jax import config as config_lib
-from espl_jax import run
+from espl_jax import envs, run, rundir
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -111,7 +110,7 @@ def test_resume_without_checkpoints(tmp_path):
 
 def test_resume_with_empty_checkpoints(tmp_path):
     config_lib.save(config_lib.from_mapping(TINY), tmp_path / "config.yaml")
-    (tmp_path / run.CHECKPOINT_DIR).mkdir()
+    (tmp_path / rundir.CHECKPOINT_DIR).mkdir()
     proc = cli("train", "--resume", str(tmp_path), "--no-progress")
     assert_user_error(proc, "no complete checkpoint")
 
@@ -146,11 +145,11 @@ def test_export_of_mlp_run_has_no_formula(tmp_path):
 def _damage(run_dir: Path, keep_metadata: bool) -> None:
     """Overwrite the files of the newest checkpoint with garbage (all of them, or the data
     only); the one before it is the initial state's."""
-    steps = [p.name for p in (run_dir / run.CHECKPOINT_DIR).iterdir() if p.name.isdigit()]
+    steps = [p.name for p in (run_dir / rundir.CHECKPOINT_DIR).iterdir() if p.name.isdigit()]
     assert sorted(steps) == ["0", "2"]
     metadata = {"_CHECKPOINT_METADATA", "commit_success.txt"}
     damaged = 0
-    for path in (run_dir / run.CHECKPOINT_DIR / "2").rglob("*"):
+    for path in (run_dir / rundir.CHECKPOINT_DIR / "2").rglob("*"):
         if path.is_file() and not (keep_metadata and path.name in metadata):
             path.write_bytes(b"\x00garbage\xff" * 3)
             damaged += 1
@@ -166,7 +165,7 @@ def test_corrupt_checkpoint(stopped_run, tmp_path, module, keep_metadata):
     _damage(run_dir, keep_metadata)
     args = ["--resume", str(run_dir), "--no-progress"] if module == "train" else [str(run_dir)]
     line = assert_user_error(cli(module, *args), "unreadable", "corrupt")
-    assert str(run_dir / run.CHECKPOINT_DIR / "2") in line
+    assert str(run_dir / rundir.CHECKPOINT_DIR / "2") in line
 
 
 def test_export_bad_seed(stopped_run):

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 from gymnasium.wrappers import TimeLimit
 
-import envs
-from envs.reference import reference_env
+from espl_jax import envs
+from espl_jax.envs.reference import reference_env
 
 TOL = 1e-4
 OPEN_LOOP = 50  # cartpole steps checked open loop in float32 (see the per-step test)

@@ -59,8 +59,8 @@ import mujoco
 import numpy as np
 import pytest
 
-import envs
-from envs.mjx import MjxParams, MjxState, mujoco_warnings_to_python
+from espl_jax import envs
+from espl_jax.envs.mjx import MjxParams, MjxState, mujoco_warnings_to_python
 
 TOL = 1e-4
 REWARD_TOL = 1e-3
@@ -605,7 +605,10 @@ def test_reset_eager():
 
 
 def test_import_envs_does_not_import_mujoco():
-    code = "import sys, envs; assert 'mujoco' not in sys.modules, 'mujoco imported'"
+    code = (
+        "import sys; from espl_jax import envs; "
+        "assert 'mujoco' not in sys.modules, 'mujoco imported'"
+    )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
 
 
@@ -613,7 +616,7 @@ def test_import_envs_does_not_import_mujoco():
 def test_reference_env_is_the_gymnasium_v5_class(name):
     """Exported policies are evaluated in gymnasium's v5 env with the same sizes and units."""
     pytest.importorskip("imageio", reason="gymnasium.envs.mujoco imports imageio")
-    from envs.reference import reference_env
+    from espl_jax.envs.reference import reference_env
 
     env, ref = envs.make(name), reference_env(name)
     assert ref.spec.id.endswith("-v5") and ref.spec.max_episode_steps == env.horizon

@@ -27,8 +27,8 @@ import mujoco
 import numpy as np
 import pytest
 
-import envs
-from envs.native import HOOK_FIELDS, NativeEnv, float64_words, from_words, to_words
+from espl_jax import envs
+from espl_jax.envs.native import HOOK_FIELDS, NativeEnv, float64_words, from_words, to_words
 
 REPO = Path(__file__).resolve().parent.parent
 STEPS = 100
@@ -227,7 +227,7 @@ def test_native_run_killed_mid_chunk_resumes_bit_for_bit(tmp_path, jax_cache):
     """SIGKILL while the second chunk runs, then ``--resume``: the physics state is in the
     checkpoint, so the run ends exactly where an uninterrupted one does."""
     from espl_jax import config as config_lib
-    from espl_jax import faults, run
+    from espl_jax import faults, run, rundir
 
     config_file = tmp_path / "tiny_hopper.yaml"
     config_lib.save(config_lib.from_mapping(TINY_HOPPER), config_file)
@@ -246,10 +246,12 @@ def test_native_run_killed_mid_chunk_resumes_bit_for_bit(tmp_path, jax_cache):
     assert step_a == step_b == 4
     for x, y in zip(jax.tree.leaves(state_a), jax.tree.leaves(state_b), strict=True):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-    assert run.read_metrics(whole / run.METRICS_FILE) == run.read_metrics(killed / run.METRICS_FILE)
+    assert rundir.read_metrics(whole / rundir.METRICS_FILE) == rundir.read_metrics(
+        killed / rundir.METRICS_FILE
+    )
     import json
 
-    record = json.loads((killed / run.EVAL_FILE).read_text())
+    record = json.loads((killed / rundir.EVAL_FILE).read_text())
     assert record["physics"] == "native"
 
 

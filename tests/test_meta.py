@@ -15,10 +15,10 @@ import pytest
 from conftest import TINY
 from flax import struct
 
-from envs.base import Environment
 from espl_jax import config as config_lib
 from espl_jax import evaluation, pearl, rollout
 from espl_jax import expression as ex
+from espl_jax.envs.base import Environment
 from espl_jax.policies import Actor, GeneratedSymbolic
 from espl_jax.replay import Transition
 from espl_jax.trainer import Trainer

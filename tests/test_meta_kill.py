@@ -32,7 +32,7 @@ import numpy as np
 import pytest
 
 from espl_jax import config as config_lib
-from espl_jax import faults, meta, run, runlock
+from espl_jax import faults, meta, run, rundir, runlock
 
 REPO = Path(__file__).resolve().parent.parent
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("jax_cache")]
@@ -60,7 +60,7 @@ KILLS = [
 def committed(run_dir: Path) -> set[int]:
     return {
         int(p.name)
-        for p in (run_dir / run.CHECKPOINT_DIR).iterdir()
+        for p in (run_dir / rundir.CHECKPOINT_DIR).iterdir()
         if p.name.isdigit() and (p / "commit_success.txt").is_file()
     }
 
@@ -75,10 +75,10 @@ def train_cli(args: list[str], env: dict[str, str]) -> subprocess.CompletedProce
 def assert_killed_at(point: str, run_dir: Path) -> None:
     """What the run directory holds after a kill at ``point``: nothing of the final export before
     the protocol, and the metrics rows of a chunk whose checkpoint was not committed."""
-    done = {r["iteration"] for r in run.read_metrics(run_dir / run.METRICS_FILE)}
+    done = {r["iteration"] for r in rundir.read_metrics(run_dir / rundir.METRICS_FILE)}
     assert done == {"warmup": set(), "chunk:2": {1}}.get(point, {1, 2, 3}), (point, done)
     assert (run_dir / meta.TASKS_FILE).is_file() == (point in ("protocol", "test-task-export"))
-    assert not (run_dir / run.EVAL_FILE).exists()
+    assert not (run_dir / rundir.EVAL_FILE).exists()
     exported = sorted(p.name for p in (run_dir / meta.TEST_TASKS_DIR).glob("*"))
     assert exported == (["0"] if point == "test-task-export" else [])
     assert (run_dir / runlock.LOCK_FILE).read_text().startswith("pid ")  # the dead holder's
@@ -100,8 +100,10 @@ def assert_same_finished_run(a: Path, b: Path) -> None:
     (_, state_a, step_a), (_, state_b, step_b) = run.load_run(a), run.load_run(b)
     assert step_a == step_b
     assert_trees_equal(state_a, state_b)
-    assert run.read_metrics(a / run.METRICS_FILE) == run.read_metrics(b / run.METRICS_FILE)
-    records = [json.loads((d / run.EVAL_FILE).read_text()) for d in (a, b)]
+    assert rundir.read_metrics(a / rundir.METRICS_FILE) == rundir.read_metrics(
+        b / rundir.METRICS_FILE
+    )
+    records = [json.loads((d / rundir.EVAL_FILE).read_text()) for d in (a, b)]
     for record in records:
         del record["training"]["wall_seconds_training"]
     assert records[0] == records[1]

@@ -14,7 +14,7 @@ import pytest
 from conftest import TINY, TINY_MLP
 
 from espl_jax import config as config_lib
-from espl_jax import evaluate, run, runlock, train
+from espl_jax import evaluate, rundir, runlock, train
 from espl_jax.cli import run_main
 from espl_jax.config import UserError
 
@@ -75,7 +75,7 @@ def test_commands_that_write_a_run_refuse_a_held_one(module, args, tmp_path, cap
 
 
 def _committed(run_dir: Path) -> set[int]:
-    directory = run_dir / run.CHECKPOINT_DIR
+    directory = run_dir / rundir.CHECKPOINT_DIR
     if not directory.is_dir():
         return set()
     return {
@@ -131,5 +131,5 @@ def test_two_trainings_of_one_run_directory_then_kill_9_and_resume(tmp_path, jax
     resumed = cli("--resume", str(run_dir), "--iterations", str(trained))
     _, stderr = resumed.communicate(timeout=600)
     assert resumed.returncode == 0, stderr
-    assert run.read_eval(run_dir)["training"]["iterations"] == trained
+    assert rundir.read_eval(run_dir)["training"]["iterations"] == trained
     assert (run_dir / runlock.LOCK_FILE).read_text() == ""

@@ -22,8 +22,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import envs
-from envs.tasks import MjxPhysicsFamily, broadcast_tasks, uniform_union
+from espl_jax import envs
+from espl_jax.envs.tasks import MjxPhysicsFamily, broadcast_tasks, uniform_union
 
 COUNTS = {
     "cartpole_fl_ood": (40, 10),
@@ -120,7 +120,7 @@ def test_registry_names_and_errors():
 
 def test_import_and_cartpole_family_stay_light():
     code = (
-        "import sys, envs; f = envs.make_family('cartpole_fl_ood'); "
+        "import sys; from espl_jax import envs; f = envs.make_family('cartpole_fl_ood'); "
         "heavy = [m for m in ('mujoco', 'gymnasium') if m in sys.modules]; "
         "assert not heavy, heavy"
     )

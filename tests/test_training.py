@@ -26,8 +26,7 @@ import pytest
 import yaml
 from conftest import TINY, TINY_MLP
 
-import envs
-from espl_jax import checkpoint, evaluation, faults, replay, rollout, run
+from espl_jax import checkpoint, envs, evaluation, faults, replay, rollout, run, rundir
 from espl_jax import config as config_lib
 from espl_jax.policies import MLPActor, tanh_gaussian_log_prob
 from espl_jax.sac import SAC, TrainState
@@ -80,7 +79,7 @@ def test_full_run_writes_every_artifact(full_run):
     cfg = tiny()
     assert config_lib.load(run_dir / "config.yaml") == cfg
 
-    rows = run.read_metrics(run_dir / run.METRICS_FILE)
+    rows = rundir.read_metrics(run_dir / rundir.METRICS_FILE)
     assert len(rows) == cfg.iterations * cfg.seeds
     assert {(r["iteration"], r["seed"]) for r in rows} == {
         (i, s) for i in range(1, cfg.iterations + 1) for s in range(cfg.seeds)
@@ -93,16 +92,16 @@ def test_full_run_writes_every_artifact(full_run):
         assert ("eval_return" in r) == chunk_end
         assert all(math.isfinite(r[k]) for k in ("critic_loss", "penalty", "tau"))
 
-    png = (run_dir / run.CURVE_FILE).read_bytes()
+    png = (run_dir / rundir.CURVE_FILE).read_bytes()
     assert png.startswith(b"\x89PNG\r\n\x1a\n") and len(png) > 1000
 
-    steps = sorted(int(p.name) for p in (run_dir / run.CHECKPOINT_DIR).iterdir())
+    steps = sorted(int(p.name) for p in (run_dir / rundir.CHECKPOINT_DIR).iterdir())
     assert steps[-1] == cfg.iterations
 
-    expression = (run_dir / run.EXPRESSION_FILE).read_text()
+    expression = (run_dir / rundir.EXPRESSION_FILE).read_text()
     assert expression.startswith("a0 = ") and "x" in expression
 
-    record = json.loads((run_dir / run.EVAL_FILE).read_text())
+    record = json.loads((run_dir / rundir.EVAL_FILE).read_text())
     assert record == result
     assert record["env"] == "cartpole" and record["actor"] == "symbolic"
     best = record["best_seed"]
@@ -128,7 +127,7 @@ def test_seeds_are_independent(full_run):
     run_dir, result = full_run
     _, state = load_params(run_dir)
     assert len(result["per_seed"]) == 2
-    rows = run.read_metrics(run_dir / run.METRICS_FILE)
+    rows = rundir.read_metrics(run_dir / rundir.METRICS_FILE)
     assert {r["seed"] for r in rows} == {0, 1}
     for leaf in jax.tree.leaves((state.actor, state.critic)):
         assert leaf.shape[0] == 2
@@ -155,7 +154,7 @@ def test_policy_py_is_the_network_under_the_eval_mask(full_run):
         env.action_high - env.action_low
     )
 
-    policy = evaluation.load_policy(run_dir / run.POLICY_FILE)
+    policy = evaluation.load_policy(run_dir / rundir.POLICY_FILE)
     got = np.array([policy.act(o) for o in obs])
     assert got.shape == (16, 1)
     assert np.all(got >= env.action_low) and np.all(got <= env.action_high)
@@ -172,7 +171,7 @@ def test_export_cli_writes_the_same_policy(full_run, tmp_path, jax_cache):
         cwd=REPO, env={**os.environ, **jax_cache}, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
-    assert out.read_text() == (run_dir / run.POLICY_FILE).read_text()
+    assert out.read_text() == (run_dir / rundir.POLICY_FILE).read_text()
 
 
 # Resume ---------------------------------------------------------------------------------------
@@ -194,16 +193,16 @@ def test_resume_is_bitwise_deterministic(full_run, stopped_run, tmp_path):
         assert_trees_equal(getattr(state_a, name), getattr(state_b, name))
     assert_trees_equal(state_a, state_b)  # optimizers, targets, buffer, env state and key too
     # The resumed run's records are those of the uninterrupted one.
-    assert run.read_metrics(run_dir / run.METRICS_FILE) == run.read_metrics(
-        full_dir / run.METRICS_FILE
+    assert rundir.read_metrics(run_dir / rundir.METRICS_FILE) == rundir.read_metrics(
+        full_dir / rundir.METRICS_FILE
     )
     for record in (result, full_result):
         record = copy.deepcopy(record)
         del record["training"]["wall_seconds_training"]
         records.append(record)
     assert records[0] == records[1]
-    assert (run_dir / run.EXPRESSION_FILE).read_text() == (
-        full_dir / run.EXPRESSION_FILE
+    assert (run_dir / rundir.EXPRESSION_FILE).read_text() == (
+        full_dir / rundir.EXPRESSION_FILE
     ).read_text()
 
 
@@ -228,11 +227,11 @@ def test_non_finite_loss_stops_and_keeps_the_last_good_checkpoint(stopped_run, t
     np.testing.assert_array_equal(state.iteration, [2, 2])
     assert all(np.isfinite(leaf).all() for leaf in jax.tree.leaves(state.critic))
     # The failing chunk's rows are kept, so the user can see what diverged.
-    rows = run.read_metrics(run_dir / run.METRICS_FILE)
+    rows = rundir.read_metrics(run_dir / rundir.METRICS_FILE)
     assert max(r["iteration"] for r in rows) == 4
     assert any(not math.isfinite(r["critic_loss"]) for r in rows if r["iteration"] == 3)
     assert "critic_loss" in message or "q became" in message
-    assert not (run_dir / run.EVAL_FILE).exists()
+    assert not (run_dir / rundir.EVAL_FILE).exists()
 
 
 @pytest.mark.slow
@@ -250,7 +249,7 @@ def test_resume_after_kill_9(tmp_path, jax_cache):
     )  # fmt: skip
     try:
         deadline = time.monotonic() + 900
-        while not _completed_steps(killed / run.CHECKPOINT_DIR) & {2, 3, 4, 5, 6}:
+        while not _completed_steps(killed / rundir.CHECKPOINT_DIR) & {2, 3, 4, 5, 6}:
             assert proc.poll() is None, proc.stderr.read().decode()
             assert time.monotonic() < deadline, "no checkpoint >= 2 in time"
             time.sleep(0.2)
@@ -261,7 +260,7 @@ def test_resume_after_kill_9(tmp_path, jax_cache):
             proc.kill()
             proc.wait()
     assert proc.returncode == -signal.SIGKILL
-    assert not (killed / run.EVAL_FILE).exists()
+    assert not (killed / rundir.EVAL_FILE).exists()
 
     resumed = subprocess.run(
         [*cmd, "--resume", str(killed)], cwd=REPO, env=env, capture_output=True, text=True,
@@ -276,8 +275,8 @@ def test_resume_after_kill_9(tmp_path, jax_cache):
     assert step_a == step_b == 8
     for name in ("actor", "critic", "log_alpha"):
         assert_trees_equal(getattr(state_a, name), getattr(state_b, name))
-    assert run.read_metrics(killed / run.METRICS_FILE) == run.read_metrics(
-        reference / run.METRICS_FILE
+    assert rundir.read_metrics(killed / rundir.METRICS_FILE) == rundir.read_metrics(
+        reference / rundir.METRICS_FILE
     )
 
 
@@ -309,12 +308,14 @@ def _assert_same_finished_run(a: Path, b: Path) -> None:
     step_b, state_b = load_params(b)
     assert step_a == step_b
     assert_trees_equal(state_a, state_b)
-    assert run.read_metrics(a / run.METRICS_FILE) == run.read_metrics(b / run.METRICS_FILE)
-    for name in (run.EXPRESSION_FILE, run.POLICY_FILE):  # absent for the MLP actor
+    assert rundir.read_metrics(a / rundir.METRICS_FILE) == rundir.read_metrics(
+        b / rundir.METRICS_FILE
+    )
+    for name in (rundir.EXPRESSION_FILE, rundir.POLICY_FILE):  # absent for the MLP actor
         assert (a / name).is_file() == (b / name).is_file()
         if (a / name).is_file():
             assert (a / name).read_text() == (b / name).read_text()
-    records = [json.loads((d / run.EVAL_FILE).read_text()) for d in (a, b)]
+    records = [json.loads((d / rundir.EVAL_FILE).read_text()) for d in (a, b)]
     for record in records:
         del record["training"]["wall_seconds_training"]
     assert records[0] == records[1]
@@ -325,8 +326,8 @@ def test_kill_during_a_checkpoint_write_then_resume(full_run, tmp_path, jax_cach
     """SIGKILL while the checkpoint of iteration 4 is written: it is never committed, the
     resume restarts from iteration 2 and ends where the uninterrupted run ends."""
     killed = _killed_at("checkpoint-write:4", tmp_path, jax_cache)
-    assert _completed_steps(killed / run.CHECKPOINT_DIR) == {0, 2}  # the initial state, 2
-    assert not (killed / run.EVAL_FILE).exists()
+    assert _completed_steps(killed / rundir.CHECKPOINT_DIR) == {0, 2}  # the initial state, 2
+    assert not (killed / rundir.EVAL_FILE).exists()
     _resume_cli(killed, jax_cache)
     _assert_same_finished_run(full_run[0], killed)
 
@@ -335,9 +336,9 @@ def test_kill_during_the_final_export_then_resume(full_run, tmp_path, jax_cache)
     """SIGKILL after eval.json, expression.txt and policy.py are written but before the reference
     evaluation: the formula is already saved, and the resume completes the export."""
     killed = _killed_at("export", tmp_path, jax_cache)
-    record = json.loads((killed / run.EVAL_FILE).read_text())
+    record = json.loads((killed / rundir.EVAL_FILE).read_text())
     assert "formula" in record and "reference_eval" not in record
-    assert (killed / run.POLICY_FILE).is_file()
+    assert (killed / rundir.POLICY_FILE).is_file()
     _resume_cli(killed, jax_cache)
     _assert_same_finished_run(full_run[0], killed)
 
@@ -387,8 +388,10 @@ def test_failing_reference_evaluation_is_a_warning_and_loses_nothing(
     assert result["warnings"] == [
         "reference evaluation of policy.py failed: ModuleNotFoundError: No module named 'imageio'"
     ]
-    assert json.loads((run_dir / run.EVAL_FILE).read_text()) == result
-    assert (run_dir / run.POLICY_FILE).read_text() == (full_run[0] / run.POLICY_FILE).read_text()
+    assert json.loads((run_dir / rundir.EVAL_FILE).read_text()) == result
+    assert (run_dir / rundir.POLICY_FILE).read_text() == (
+        full_run[0] / rundir.POLICY_FILE
+    ).read_text()
 
 
 def _completed_steps(directory: Path) -> set[int]:
@@ -408,15 +411,15 @@ def _completed_steps(directory: Path) -> set[int]:
 def test_mlp_actor_run_has_no_formula(tmp_path):
     cfg = config_lib.from_mapping(TINY_MLP)
     result = run.train(cfg, tmp_path, show_progress=False)
-    record = json.loads((tmp_path / run.EVAL_FILE).read_text())
+    record = json.loads((tmp_path / rundir.EVAL_FILE).read_text())
     assert record == result
     assert record["actor"] == "mlp"
     assert "formula" not in record and "reference_eval" not in record
     assert all("formula" not in e for e in record["per_seed"])
     assert math.isfinite(record["jax_eval"]["mean"])
-    assert not (tmp_path / run.POLICY_FILE).exists()
-    assert not (tmp_path / run.EXPRESSION_FILE).exists()
-    rows = run.read_metrics(tmp_path / run.METRICS_FILE)
+    assert not (tmp_path / rundir.POLICY_FILE).exists()
+    assert not (tmp_path / rundir.EXPRESSION_FILE).exists()
+    rows = rundir.read_metrics(tmp_path / rundir.METRICS_FILE)
     assert len(rows) == cfg.iterations and all(r["l0_ratio"] == 1.0 for r in rows)
 
 
@@ -607,7 +610,7 @@ def test_eval_json_names_the_seed_that_trains_the_chosen_one_alone(capsys):
     trainer = Trainer(config_lib.resolve("cartpole", seed=3, seeds=2))
     ones = np.ones(2, np.int32)
     state = SimpleNamespace(episodes=ones, env_steps=ones, iteration=ones)
-    head = run.result_header(trainer, state, 1, 0.0)
+    head = rundir.result_header(trainer, state, 1, 0.0)
     assert (head["best_seed"], head["train_seed"]) == (1, 4)
     train.print_single_task({**head, "formula": "a0 = x2", "length": 3, "jax_eval": {
         "episodes": 10, "mean": 1.0, "std": 0.0}, "evaluated_in": "jax"})  # fmt: skip

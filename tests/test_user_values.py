@@ -33,9 +33,8 @@ from conftest import TINY
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-import envs
 from espl_jax import config as config_lib
-from espl_jax import train
+from espl_jax import envs, train
 from espl_jax.cli import run_main
 from espl_jax.config import Config
 
