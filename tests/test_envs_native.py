@@ -223,6 +223,7 @@ def _train_cli(args, env_vars=None):
     )  # fmt: skip
 
 
+@pytest.mark.slow  # ~2 min: three CLI runs of a tiny hopper config
 def test_native_run_killed_mid_chunk_resumes_bit_for_bit(tmp_path, jax_cache):
     """SIGKILL while the second chunk runs, then ``--resume``: the physics state is in the
     checkpoint, so the run ends exactly where an uninterrupted one does."""
