@@ -1,5 +1,7 @@
 """Shared test configs and the JAX compilation cache used by the training and CLI tests."""
 
+from pathlib import Path
+
 import jax
 import pytest
 from jax.experimental.compilation_cache import compilation_cache
@@ -55,3 +57,15 @@ def jax_cache(tmp_path_factory):
     for name, value in old.items():
         jax.config.update(name, value)
     compilation_cache.reset_cache()
+
+
+def committed_checkpoints(directory: Path) -> set[int]:
+    """The iterations whose orbax checkpoint in ``directory`` was committed (a kill mid-write
+    leaves a step folder without ``commit_success.txt``)."""
+    if not directory.is_dir():
+        return set()
+    return {
+        int(p.name)
+        for p in directory.iterdir()
+        if p.name.isdigit() and (p / "commit_success.txt").is_file()
+    }

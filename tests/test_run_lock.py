@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import TINY, TINY_MLP
+from conftest import TINY, TINY_MLP, committed_checkpoints
 
 from espl_jax import config as config_lib
 from espl_jax import evaluate, rundir, runlock, train
@@ -74,17 +74,6 @@ def test_commands_that_write_a_run_refuse_a_held_one(module, args, tmp_path, cap
     assert sorted(p.name for p in tmp_path.iterdir()) == [runlock.LOCK_FILE, "config.yaml"]
 
 
-def _committed(run_dir: Path) -> set[int]:
-    directory = run_dir / rundir.CHECKPOINT_DIR
-    if not directory.is_dir():
-        return set()
-    return {
-        int(p.name)
-        for p in directory.iterdir()
-        if p.name.isdigit() and (p / "commit_success.txt").is_file()
-    }
-
-
 def test_two_trainings_of_one_run_directory_then_kill_9_and_resume(tmp_path, jax_cache):
     """Two ``train --out SAME``: the second is refused naming the first's pid, as is a
     ``--resume`` while the first runs; after ``kill -9`` of the first, ``--resume`` works."""
@@ -107,7 +96,8 @@ def test_two_trainings_of_one_run_directory_then_kill_9_and_resume(tmp_path, jax
     )  # fmt: skip
     try:
         deadline = time.monotonic() + 600
-        while not _committed(run_dir) - {0}:  # a trained checkpoint, for the resume below
+        checkpoints = run_dir / rundir.CHECKPOINT_DIR
+        while not committed_checkpoints(checkpoints) - {0}:  # a trained one, for the resume below
             assert first.poll() is None, first.stderr.read()
             assert time.monotonic() < deadline, "no checkpoint in time"
             time.sleep(0.2)
@@ -127,7 +117,7 @@ def test_two_trainings_of_one_run_directory_then_kill_9_and_resume(tmp_path, jax
     assert f"pid {first.pid} on" in (run_dir / runlock.LOCK_FILE).read_text()
 
     # The stale lock blocks nothing: resume up to the newest checkpoint and finish the run there.
-    trained = max(_committed(run_dir))
+    trained = max(committed_checkpoints(run_dir / rundir.CHECKPOINT_DIR))
     resumed = cli("--resume", str(run_dir), "--iterations", str(trained))
     _, stderr = resumed.communicate(timeout=600)
     assert resumed.returncode == 0, stderr

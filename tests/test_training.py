@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import yaml
-from conftest import TINY, TINY_MLP
+from conftest import TINY, TINY_MLP, committed_checkpoints
 
 from espl_jax import checkpoint, envs, evaluation, faults, replay, rollout, run, rundir
 from espl_jax import config as config_lib
@@ -249,7 +249,7 @@ def test_resume_after_kill_9(tmp_path, jax_cache):
     )  # fmt: skip
     try:
         deadline = time.monotonic() + 900
-        while not _completed_steps(killed / rundir.CHECKPOINT_DIR) & {2, 3, 4, 5, 6}:
+        while not committed_checkpoints(killed / rundir.CHECKPOINT_DIR) & {2, 3, 4, 5, 6}:
             assert proc.poll() is None, proc.stderr.read().decode()
             assert time.monotonic() < deadline, "no checkpoint >= 2 in time"
             time.sleep(0.2)
@@ -326,7 +326,7 @@ def test_kill_during_a_checkpoint_write_then_resume(full_run, tmp_path, jax_cach
     """SIGKILL while the checkpoint of iteration 4 is written: it is never committed, the
     resume restarts from iteration 2 and ends where the uninterrupted run ends."""
     killed = _killed_at("checkpoint-write:4", tmp_path, jax_cache)
-    assert _completed_steps(killed / rundir.CHECKPOINT_DIR) == {0, 2}  # the initial state, 2
+    assert committed_checkpoints(killed / rundir.CHECKPOINT_DIR) == {0, 2}  # the initial state, 2
     assert not (killed / rundir.EVAL_FILE).exists()
     _resume_cli(killed, jax_cache)
     _assert_same_finished_run(full_run[0], killed)
@@ -392,16 +392,6 @@ def test_failing_reference_evaluation_is_a_warning_and_loses_nothing(
     assert (run_dir / rundir.POLICY_FILE).read_text() == (
         full_run[0] / rundir.POLICY_FILE
     ).read_text()
-
-
-def _completed_steps(directory: Path) -> set[int]:
-    if not directory.is_dir():
-        return set()
-    return {
-        int(p.name)
-        for p in directory.iterdir()
-        if p.name.isdigit() and (p / "commit_success.txt").is_file()
-    }
 
 
 # The neural baseline -----------------------------------------------------------------------------
