@@ -189,15 +189,15 @@ def spread(values: list[float]) -> str:
     """median [min, max] of several seeds; the value itself for one."""
     if len(values) == 1:
         return fmt(values[0])
-    return f"{fmt(statistics.median(values))} [{fmt(min(values))}, {fmt(max(values))}]"
+    return f"{statistics.median(values):.2f} [{fmt(min(values))}, {fmt(max(values))}]"
 
 
 def mean_spread(values: list[float]) -> str:
+    """mean [min, max] (seeds) of several seeds; the value itself for one."""
     if len(values) == 1:
         return f"{fmt(values[0])} (1 seed)"
-    return (
-        f"{fmt(statistics.fmean(values))} [{fmt(min(values))}, {fmt(max(values))}] ({len(values)})"
-    )
+    mean = statistics.fmean(values)
+    return f"{mean:.2f} [{fmt(min(values))}, {fmt(max(values))}] ({len(values)})"
 
 
 def order(names: Iterable[str], canon: list[str]) -> list[str]:
@@ -275,8 +275,11 @@ def single_headline(results: list[Result], link: str) -> str:
     for env in order({g.env for g in gs}, SINGLE_ENVS):
         for g in sorted((g for g in gs if g.env == env), key=lambda g: g.res.name):
             b = g.res.data.get("bar", bar.get(env))
-            met = "—"
-            if b is not None and not g.res.data.get("single_run"):
+            n = len(g.values)
+            met = f"{n} run{'s' if n > 1 else ''}, no bar"
+            if g.res.data.get("single_run"):
+                met = "1 run (seed " + ", ".join(str(r.get("seed")) for r in g.rows) + ")"
+            elif b is not None:
                 met = f"**{sum(v >= b for v in g.values)}/{len(g.values)}** ≥ {fmt(b)}"
             p = paper.get(env, {}).get("espl_return")
             data = f"[{g.how}]({link}#{anchor(g.res.title)})"
