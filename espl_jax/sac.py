@@ -15,7 +15,8 @@ trains the encoder); the policy side and the targets see stop_gradient(z).
   authors' code.
 - α: tuned towards −|A| (Haarnoja et al. 2018b, Eq. 18), or fixed (``auto_alpha: false``).
 
-Order in one step (DESIGN): critic and encoder, actor against the updated critic, α, Polyak.
+Order in one step (docs/design.md "One trainer"): critic and encoder, actor against the updated
+critic, α, Polyak.
 """
 
 from __future__ import annotations
