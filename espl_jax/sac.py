@@ -20,7 +20,8 @@ trains the encoder); the policy side and the targets see stop_gradient(z).
   statistics), stop_gradient on y, the critics' Adam with β1 0.5. The actor reads the critics
   in evaluation mode (running statistics). ``target_critic`` is then unused.
 
-Order in one step (DESIGN): critic and encoder, actor against the updated critic, α, Polyak.
+Order in one step (docs/design.md "One trainer"): critic and encoder, actor against the updated
+critic, α, Polyak.
 """
 
 from __future__ import annotations
