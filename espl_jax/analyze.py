@@ -84,7 +84,10 @@ def exported_expressions(run_dir: str | Path, seed: int | None = None) -> list[s
     seed = best_seed(run_dir) if seed is None else seed
     if not 0 <= seed < trainer.config.seeds:
         raise UserError(f"--seed must be in [0, {trainer.config.seeds - 1}]")
-    actor = jax.tree.map(lambda x: np.asarray(x[seed]), state.actor)
+    # The actor the run exported (the hall of fame's anchor with keep_best_formula), not
+    # necessarily the newest one: the formula of expression.txt and policy.py.
+    actors, _ = run.exported_actors(trainer, state)
+    actor = jax.tree.map(lambda x: np.asarray(x[seed]), actors)
     return ex.export_expressions(trainer, actor)
 
 

@@ -1,6 +1,7 @@
 """python -m espl_jax.export RUN_DIR: print or write a run's formula in one of four formats.
 
-- default: the formula of the run's newest checkpoint (the best seed of eval.json);
+- default: the formula the run exported (the best seed of eval.json), rebuilt from its newest
+  checkpoint: the hall of fame's anchor with ``keep_best_formula``, else the final one;
 - ``--pick best|shortest-within PCT``: one from the hall of fame (formulas.jsonl: every chunk's
   formula with its selection return), written as expression.txt and policy.py into RUN/picked/
   (or ``--output DIR``);
@@ -84,7 +85,10 @@ def main(argv: list[str] | None = None) -> int:
             )
     if not 0 <= seed < trainer.config.seeds:
         raise UserError(f"--seed must be in [0, {trainer.config.seeds - 1}]")
-    actor = jax.tree.map(lambda x: np.asarray(x[seed]), state.actor)
+    # The actor the run exported (the hall of fame's anchor with keep_best_formula), not
+    # necessarily the newest one: the formula of expression.txt and policy.py.
+    actors, _ = run.exported_actors(trainer, state)
+    actor = jax.tree.map(lambda x: np.asarray(x[seed]), actors)
     if trainer.meta:
         tasks = (record or {}).get("test", {}).get("per_task", [])
         if not 0 <= args.task < len(tasks):

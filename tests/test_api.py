@@ -20,9 +20,11 @@ import sympy as sp
 import yaml
 
 import espl_jax
-from espl_jax import api, export, rundir
+from espl_jax import analyze, api, export, rundir
 from espl_jax import config as config_lib
+from espl_jax import expression as ex
 from espl_jax import halloffame as hof
+from espl_jax import run as run_lib
 from espl_jax.config import UserError
 
 REPO = Path(__file__).resolve().parent.parent
@@ -139,6 +141,29 @@ def test_pick_is_exports_pick(trained, tmp_path):
     best = max(r["selection_return"] for r in kept)
     assert picked.info["selection_return"] >= best - abs(best) * 0.05
     assert str(trained.pick("best")) == str(trained.pick("best", seed=0))
+
+
+def test_export_and_analyze_read_the_exported_anchor_not_the_final_actor(
+    trained, monkeypatch, capsys
+):
+    """With keep_best_formula the run exports the hall of fame's anchor; export (default) and
+    analyze must rebuild that formula, not the checkpoint's newest actor (which differs here: its
+    constants are scaled)."""
+    assert trained.config.keep_best_formula
+    trainer, state, step = run_lib.load_run(trained.path)
+    assert np.isfinite(np.asarray(state.anchor_return)).all()
+    final = {**state.actor, "mean": jax.tree.map(lambda w: 1.5 * w, state.actor["mean"])}
+    moved = state.replace(actor=final)
+    monkeypatch.setattr(run_lib, "load_run", lambda run_dir: (trainer, moved, step))
+    exported = (trained.path / rundir.EXPRESSION_FILE).read_text().strip()
+    final_text = ex.to_text(
+        ex.export_expressions(trainer, jax.tree.map(lambda v: np.asarray(v[0]), final))
+    )
+    assert final_text != exported  # the test means something
+    assert ex.to_text(analyze.exported_expressions(trained.path)) == exported
+    capsys.readouterr()
+    assert export.main([str(trained.path)]) == 0
+    assert capsys.readouterr().out.strip() == exported
 
 
 @pytest.mark.parametrize("how, within", [("worst", None), ("best", 5), ("shortest-within", None)])
