@@ -216,12 +216,13 @@ def closed_loop(
 
     Returns:
         A JSON-serialisable dict: ``verdict`` ("stable", "marginal" or "unstable") and
-        ``summary``; ``modes`` (one per eigenvalue, largest |λ| first: ``discrete`` λ and
-        ``continuous`` μ as [re, im], ``abs`` |λ|, ``kind``, ``dominant_state``); ``jacobian``
-        (n, n); ``continuous_time`` (how μ was obtained); ``fixed_point_residual`` ‖f(x*) − x*‖
-        with ``fixed_point_offset`` f(x*) − x* (n,), ``pre_tanh_at_equilibrium`` and
-        ``action_at_equilibrium`` (action_dim,), normalised to [-1, 1]; plus ``env``,
-        ``equilibrium``, ``state_names``, ``dt``, ``tolerance``, ``jacobian_at``.
+        ``summary``; ``spectral_radius``, the largest |λ|; ``modes`` (one per eigenvalue,
+        largest |λ| first: ``discrete`` λ and ``continuous`` μ as [re, im], ``abs`` |λ|,
+        ``kind``, ``dominant_state``); ``jacobian`` (n, n); ``continuous_time`` (how μ was
+        obtained); ``fixed_point_residual`` ‖f(x*) − x*‖ with ``fixed_point_offset``
+        f(x*) − x* (n,), ``pre_tanh_at_equilibrium`` and ``action_at_equilibrium``
+        (action_dim,), normalised to [-1, 1]; plus ``env``, ``equilibrium``, ``state_names``,
+        ``dt``, ``tolerance``, ``jacobian_at``.
 
     Raises:
         UserError: the env has no equilibrium defined.
@@ -274,6 +275,7 @@ def closed_loop(
         "dt": eq.dt,
         "tolerance": tolerance,
         "verdict": verdict,
+        "spectral_radius": modes[0]["abs"],
         "summary": summary,
         "continuous_time": (
             "(λ − 1)/Δt: exact, the env is explicit Euler (J = I + Δt ∂g/∂x)"
@@ -403,6 +405,7 @@ def format_report(result: dict[str, Any], formula: str | None = None) -> str:
         )
     if result["jacobian_at"] != "equilibrium":
         lines.append(f"  Jacobian taken as the {result['jacobian_at']}")
+    lines.append(f"  spectral radius max |λ| = {result['spectral_radius']:.6f}")
     lines.append(f"  verdict: {result['summary']}")
     return "\n".join(lines)
 
