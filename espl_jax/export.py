@@ -32,8 +32,9 @@ PICK_DIR = "picked"
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m espl_jax.export",
-        description="Export the symbolic policy of a run: from its newest checkpoint, from its "
-        "hall of fame (--pick), or adapted to a meta-RL test task (--task).",
+        description="Export the symbolic policy of a run: the one it exported (rebuilt from its "
+        "newest checkpoint: the hall of fame's best with keep_best_formula), one from its hall "
+        "of fame (--pick), or the one adapted to a meta-RL test task (--task).",
     )
     p.add_argument("run_dir", help="a run directory written by espl_jax.train")
     p.add_argument("--format", choices=FORMATS, default="text")
