@@ -324,8 +324,8 @@ class Run:
         takes_percentage = how in ("shortest-within", "stable-within")
         if how not in hof.PICKS or takes_percentage != (within is not None):
             raise UserError(
-                f"pick takes 'best', or 'shortest-within' or 'stable-within' with a percentage, "
-                f"e.g. run.pick('stable-within', 5); got {how!r}, {within!r}"
+                f"pick takes 'best' alone, or 'shortest-within' or 'stable-within' with a "
+                f"percentage, e.g. run.pick('stable-within', 5); got {how!r}, {within!r}"
             )
         if how == "stable-within":
             hof.require_stability(self.config.env)  # before reading the hall of fame
