@@ -189,6 +189,8 @@ def pick(
         if not stable:
             verdicts = [str(r["stability"]) for r in close]
             counts = ", ".join(f"{verdicts.count(v)} {v}" for v in sorted(set(verdicts)))
+            if len(close) == len(kept):
+                raise UserError(f"no formula in the hall of fame is locally stable ({counts})")
             raise UserError(
                 f"no locally stable formula within {within:g} % of the best selection return "
                 f"({best['selection_return']:.2f}); the {len(close)} there: {counts}; try a "

@@ -118,6 +118,9 @@ def test_pick_stable_within_takes_the_shortest_locally_stable_formula():
     assert hof.pick(rows, "shortest-within", 5.0)["iteration"] == 4  # unstable, but shortest
     with pytest.raises(UserError, match=r"no locally stable .* 1 marginal, 1 unstable"):
         hof.pick(rows, "stable-within", 1.0, env="cartpole")
+    unstable = [r for r in rows if r["stability"] != "stable"]
+    with pytest.raises(UserError, match=r"no formula .* is locally stable \(1 marginal, 2 unst"):
+        hof.pick(unstable, "stable-within", 100.0, env="cartpole")
     for env in ("mountaincar", "hopper", None):
         with pytest.raises(UserError, match=f"{env} has no equilibrium analysis"):
             hof.pick(rows, "stable-within", 5.0, env=env)
