@@ -6,7 +6,8 @@ the updates one by one, and the quantities that feed the critic's target. This s
 the checkpoint at ``--from`` (the run resumes bit for bit from it, so the replay is the run's own
 history), runs ``--iterations`` more iterations with the run's config, and writes per update:
 critic loss, Q, KL, log π, the actor loss, the encoder's mean |μ_z| and the largest |μ_z|
-(meta-RL) and the largest |reward| in the RL batch::
+(meta-RL), the smallest factor variance σ²_n and largest |μ_n| of the context's factors, and the
+largest |reward| in the RL batch and in the context::
 
     python benchmarks/update_trace.py RUN --from 25 --iterations 5 --out trace.json
 
@@ -47,6 +48,11 @@ class TracingSAC(SAC):
             mu, _ = jax.vmap(self.encoder.posterior, (None, 0))(state.encoder, context)
             metrics["z_mu_abs_mean"] = jnp.mean(jnp.abs(mu))
             metrics["z_mu_abs_max"] = jnp.max(jnp.abs(mu))
+            # The product of Gaussians: one confident factor (small σ²_n) sets the posterior.
+            mu_n, var_n = jax.vmap(self.encoder.factors, (None, 0))(state.encoder, context)
+            metrics["factor_var_min"] = jnp.min(var_n)
+            metrics["factor_mu_abs_max"] = jnp.max(jnp.abs(mu_n))
+            metrics["context_reward_abs_max"] = jnp.max(jnp.abs(context.reward))
         return new, metrics
 
 
