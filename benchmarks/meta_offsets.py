@@ -23,6 +23,7 @@ import numpy as np
 import sympy as sp
 
 from espl_jax import evaluation, meta, run, rundir
+from espl_jax.envs.base import action_center_half_range, to_env_units
 
 
 def zero_offsets(expr: sp.Expr) -> dict[str, sp.Expr]:
@@ -50,7 +51,7 @@ def main() -> None:
         for i, task in enumerate(tasks):
             task_dir = run_dir / meta.TEST_TASKS_DIR / str(i)
             policy = evaluation.load_policy(task_dir / rundir.POLICY_FILE)
-            low, high = policy.ACTION_LOW, policy.ACTION_HIGH
+            center, half_range = action_center_half_range(policy.ACTION_LOW, policy.ACTION_HIGH)
             xs = sp.symbols(f"x0:{policy.OBS_DIM}")
             lines = (task_dir / rundir.EXPRESSION_FILE).read_text().splitlines()
             exprs = [sp.sympify(line.split("=", 1)[1], {str(x): x for x in xs}) for line in lines]
@@ -58,9 +59,9 @@ def main() -> None:
             for name in variants[0]:
                 fns = [sp.lambdify(xs, v[name], "math") for v in variants]
 
-                def act(obs, fns=fns, low=low, high=high):
+                def act(obs, fns=fns, center=center, half_range=half_range):
                     u = np.tanh([f(*obs) for f in fns])
-                    return low + (u + 1.0) * 0.5 * (high - low)
+                    return to_env_units(u, center, half_range)
 
                 returns = evaluation.rollout_returns(act, config.env, args.episodes, 1000, **task)
                 means.setdefault(name, []).append(float(returns.mean()))

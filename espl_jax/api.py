@@ -36,6 +36,7 @@ from espl_jax import halloffame as hof
 from espl_jax import run as run_lib
 from espl_jax.cli import check_path, use_compilation_cache
 from espl_jax.config import Config, UserError
+from espl_jax.envs.base import action_center_half_range, to_env_units
 from espl_jax.trainer import Trainer, gather
 
 PICKS = ("best", "shortest-within")
@@ -57,7 +58,7 @@ class Formula:
 
     ``expressions`` are exact: the protected operators of training (``PMul``, ``PDiv``, …, §3.1
     and App. A of the paper) with the trained float constants, pre-tanh. The deployed policy is
-    ``low + (tanh(f(obs)) + 1) / 2 · (high − low)``, as in ``policy.py``.
+    ``center + tanh(f(obs)) · half_range`` (``envs.base.to_env_units``), as in ``policy.py``.
 
     Attributes:
         expressions: ``action_dim`` protected sympy expressions in x0 … x{obs_dim−1}.
@@ -109,11 +110,11 @@ class Formula:
         """A jittable, differentiable ``act(obs) -> action`` in the env's units, obs (...,
         obs_dim) -> (..., action_dim); the operators are :mod:`espl_jax.operators`' own."""
         pre_tanh = ex.to_jax(self.expressions)
-        low, high = np.asarray(self.action_low), np.asarray(self.action_high)
+        center, half_range = action_center_half_range(self.action_low, self.action_high)
 
         def act(obs: jax.Array) -> jax.Array:
             u = jnp.tanh(pre_tanh(obs))
-            return low.astype(u.dtype) + (u + 1) * 0.5 * (high - low).astype(u.dtype)
+            return to_env_units(u, center.astype(u.dtype), half_range.astype(u.dtype), jnp.clip)
 
         return act
 
