@@ -43,6 +43,7 @@ from espl_jax import envs, run, rundir, runlock
 from espl_jax import expression as ex
 from espl_jax.cli import check_path, run_main
 from espl_jax.config import UserError
+from espl_jax.seeds import one_seed
 
 # |λ| within this of 1 is a marginal mode. The Jacobian is computed in float32 (the envs' dtype),
 # whose round-off in J is ~1e-7; 1e-4 is then safely above noise and, at Δt = 0.02 s, separates
@@ -83,7 +84,7 @@ def exported_expressions(run_dir: str | Path, seed: int | None = None) -> list[s
     seed = best_seed(run_dir) if seed is None else seed
     if not 0 <= seed < trainer.config.seeds:
         raise UserError(f"--seed must be in [0, {trainer.config.seeds - 1}]")
-    actor = jax.tree.map(lambda x: np.asarray(x[seed]), state.actor)
+    actor = one_seed(state.actor, seed)
     return ex.export_expressions(trainer, actor)
 
 

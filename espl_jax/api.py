@@ -37,6 +37,7 @@ from espl_jax import run as run_lib
 from espl_jax.cli import check_path, use_compilation_cache
 from espl_jax.config import Config, UserError
 from espl_jax.envs.base import action_center_half_range, to_env_units
+from espl_jax.seeds import one_seed
 from espl_jax.trainer import Trainer, gather
 
 PICKS = ("best", "shortest-within")
@@ -329,7 +330,7 @@ class Run:
         if not (isinstance(task, int) and 0 <= task < len(tasks)):
             raise UserError(f"task must be a test task of eval.json: 0 … {len(tasks) - 1}")
         best = record["best_seed"]
-        actor = jax.tree.map(lambda x: np.asarray(x[best]), self._state.actor)
+        actor = one_seed(self._state.actor, best)
         entry = tasks[task]
         exprs = meta.task_expressions(self._trainer, actor, entry["z"])
         return self._formula(exprs, task=task, seed=best, params=entry["params"])
@@ -374,7 +375,7 @@ class Run:
     def _from_checkpoint(self, seed: int) -> Formula:
         """``seed``'s exported formula rebuilt from the newest checkpoint (``run.finish``'s way)."""
         actors, sources = run_lib.exported_actors(self._trainer, self._state)
-        actor = jax.tree.map(lambda x: np.asarray(x[seed]), actors)
+        actor = one_seed(actors, seed)
         exprs = ex.export_expressions(self._trainer, actor)
         return self._formula(exprs, seed=seed, exported=sources[seed])
 

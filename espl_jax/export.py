@@ -13,7 +13,6 @@ import argparse
 import sys
 from pathlib import Path
 
-import jax
 import numpy as np
 
 from espl_jax import expression as ex
@@ -21,6 +20,7 @@ from espl_jax import halloffame as hof
 from espl_jax import run, rundir
 from espl_jax.cli import check_path, run_main
 from espl_jax.config import Config, UserError
+from espl_jax.seeds import one_seed
 
 FORMATS = ("text", "latex", "python", "c")
 PICK_DIR = "picked"
@@ -84,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
             )
     if not 0 <= seed < trainer.config.seeds:
         raise UserError(f"--seed must be in [0, {trainer.config.seeds - 1}]")
-    actor = jax.tree.map(lambda x: np.asarray(x[seed]), state.actor)
+    actor = one_seed(state.actor, seed)
     if trainer.meta:
         tasks = (record or {}).get("test", {}).get("per_task", [])
         if not 0 <= args.task < len(tasks):

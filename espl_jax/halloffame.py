@@ -34,6 +34,7 @@ import sympy as sp
 from espl_jax import expression as ex
 from espl_jax import rundir
 from espl_jax.config import UserError
+from espl_jax.seeds import one_seed
 
 FORMULAS_FILE = "formulas.jsonl"
 PLOT_FILE = "hall_of_fame.png"
@@ -150,6 +151,6 @@ def seed_rows(trainer, actors: Any, returns: np.ndarray, **fields: Any) -> list[
     """One row per seed of seed-stacked actor params (numpy)."""
     rows = []
     for s in range(returns.shape[0]):
-        actor = jax.tree.map(lambda x, s=s: np.asarray(x[s]), actors)
+        actor = one_seed(actors, s)
         rows.append(row(ex.export_expressions(trainer, actor), returns[s], seed=s, **fields))
     return rows

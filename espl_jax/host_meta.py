@@ -30,11 +30,8 @@ from espl_jax.host import env_seeds, host_chunk
 from espl_jax.replay import Transition
 from espl_jax.rollout import Adapted
 from espl_jax.sac import Metrics, TrainState
+from espl_jax.seeds import take
 from espl_jax.trainer import Trainer
-
-
-def _index(tree, i):
-    return jax.tree.map(lambda x: x[i], tree)
 
 
 class HostMetaCollector:
@@ -64,7 +61,7 @@ class HostMetaCollector:
             """One seed's lanes [R]: the exploring action of each lane's current trajectory."""
 
             def lane(part_d, mask_d, e, o, ep, k):
-                part, mask = _index((part_d, mask_d), e % n)
+                part, mask = take((part_d, mask_d), e % n)
                 policy = actor.policy(actor_params, part)
                 return rollout.explore(actor, cfg.exploration_correlation, policy, mask, o, ep, k)
 

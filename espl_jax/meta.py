@@ -27,6 +27,7 @@ import numpy as np
 from espl_jax import evaluation, faults, rollout, rundir
 from espl_jax import expression as ex
 from espl_jax.sac import TrainState
+from espl_jax.seeds import one_seed
 from espl_jax.symbolic import live_paths
 from espl_jax.trainer import Trainer, gather
 
@@ -58,10 +59,6 @@ def write_tasks(trainer: Trainer, run_dir: Path) -> None:
         "test": family.describe(test),
     }
     rundir.write_json(run_dir / TASKS_FILE, record)
-
-
-def _seed(tree: Any, s: int) -> Any:
-    return jax.tree.map(lambda x: x[s], tree)
 
 
 def finish(
@@ -144,7 +141,7 @@ def _export_test_tasks(
     """test_tasks/<i>/{expression.txt, policy.py}: the formula the protocol adapted to task i.
     Returns the policy.py paths."""
     env, network = trainer.env, trainer.actor.symbolic
-    actor = jax.tree.map(np.asarray, _seed(state.actor, best))
+    actor = one_seed(state.actor, best)
     lengths, paths, files = [], [], []
     for entry in result["test"]["per_task"]:
         policy = trainer.task_policy(actor, np.asarray(entry["z"]))
@@ -182,7 +179,7 @@ def _fresh_episodes(
     if trainer.on_host:  # a gymnasium family: its policy.py files in gymnasium, per task
         _fresh_policy_py(trainer, result, policy_files, warnings)
         return
-    params = _seed(state.actor, best)
+    params = one_seed(state.actor, best)
     zs = jnp.asarray([entry["z"] for entry in result["test"]["per_task"]])
 
     def one(z, task, key):
@@ -239,7 +236,7 @@ def coefficient_figure(trainer: Trainer, state: TrainState, best: int, run_dir: 
     default = trainer.env.default_params
     tasks = jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x), grid_f.shape), default)
     tasks = tasks.replace(force_mag=jnp.asarray(grid_f), length=jnp.asarray(grid_l))
-    single = _seed(state, best)
+    single = one_seed(state, best)
     adapted = jax.jit(lambda s, p, k: trainer.adapt(s, p, k))(
         single, tasks, jax.random.PRNGKey(trainer.config.seed + 20_000)
     )

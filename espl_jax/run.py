@@ -28,6 +28,7 @@ from espl_jax import expression as ex
 from espl_jax import halloffame as hof
 from espl_jax.config import Config, UserError
 from espl_jax.sac import TrainState
+from espl_jax.seeds import one_seed
 from espl_jax.trainer import Trainer, gather
 
 # Metrics whose non-finite value means the run has diverged.
@@ -357,7 +358,7 @@ def finish(
     per_seed = []
     formulas = {}
     for s in range(cfg.seeds):
-        actor = jax.tree.map(lambda x, s=s: np.asarray(x[s]), actors)
+        actor = one_seed(actors, s)
         entry = {"seed": s, "jax_eval": evaluation.summary(report[s]), "exported": source[s]}
         if source[s] == "best":
             entry["exported_iteration"] = int(state.anchor_iteration[s])

@@ -35,6 +35,7 @@ from espl_jax.config import Config, UserError
 from espl_jax.policies import META_ACTORS, SINGLE_TASK_ACTORS, Actor, make_actor
 from espl_jax.rollout import Rollout
 from espl_jax.sac import SAC, Metrics, TrainState, task_keys
+from espl_jax.seeds import take
 
 
 def resolve_physics(physics: str) -> str:
@@ -387,7 +388,7 @@ class Trainer:
         n = self.DRAWS_PER_PHASE
 
         def draw(i):
-            return jax.tree.map(lambda x: x[i % n], (parts, masks))
+            return take((parts, masks), i % n)
 
         return draw
 

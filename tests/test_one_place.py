@@ -9,6 +9,7 @@ key salts against the values every earlier run was drawn with.
 
 from types import SimpleNamespace
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -18,6 +19,20 @@ from espl_jax import expression as ex
 from espl_jax.envs.base import Environment
 from espl_jax.envs.box2d import HostEnv
 from espl_jax.evaluation import load_policy
+from espl_jax.seeds import one_seed, take
+
+# Per-seed slicing -------------------------------------------------------------------------------
+
+
+def test_one_seed_is_a_host_copy_of_one_seed():
+    tree = {"w": jnp.arange(12.0).reshape(3, 4), "b": [np.arange(3)]}
+    got = one_seed(tree, 1)
+    assert isinstance(got["w"], np.ndarray) and isinstance(got["b"][0], np.ndarray)
+    np.testing.assert_array_equal(got["w"], [4.0, 5.0, 6.0, 7.0])
+    assert got["b"][0] == 1
+    traced = jax.jit(lambda t, i: take(t, i))(tree, 2)  # take also works under jit
+    np.testing.assert_array_equal(traced["w"], [8.0, 9.0, 10.0, 11.0])
+
 
 # Action scaling ---------------------------------------------------------------------------------
 
