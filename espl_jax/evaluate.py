@@ -9,6 +9,7 @@ from pathlib import Path
 from espl_jax import envs, evaluation, run, rundir, runlock
 from espl_jax.cli import check_path, run_main
 from espl_jax.config import UserError
+from espl_jax.keys import EVALUATE_FIRST_EPISODE
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -20,7 +21,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("run_dir", help="a run directory written by espl_jax.train")
     p.add_argument("--episodes", type=int, default=1000, help="episodes (default: 1000)")
-    p.add_argument("--seed", type=int, default=10_000, help="first episode seed")
+    p.add_argument("--seed", type=int, default=EVALUATE_FIRST_EPISODE, help="first episode seed")
     args = p.parse_args(argv)
     if args.episodes <= 0:
         raise UserError("--episodes must be positive")

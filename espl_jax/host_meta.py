@@ -27,6 +27,7 @@ import numpy as np
 
 from espl_jax import pearl, replay, rollout
 from espl_jax.host import env_seeds, host_chunk
+from espl_jax.keys import HOST_WARMUP, salted
 from espl_jax.replay import Transition
 from espl_jax.rollout import Adapted
 from espl_jax.sac import Metrics, TrainState
@@ -170,7 +171,7 @@ class HostMetaCollector:
         cfg, t = self.cfg, self.trainer.num_train_tasks
         if not cfg.initial_steps:
             return state
-        keys = jax.vmap(jax.random.fold_in, (0, None))(state.key, 5)
+        keys = salted(state.key, HOST_WARMUP)
         tasks = np.tile(np.arange(t), (cfg.seeds, 1))
         transitions, done, _ = self.phase(state, tasks, keys, cfg.initial_steps, False)
         state = self._store(state, jnp.asarray(tasks), transitions, True, False)

@@ -26,6 +26,15 @@ import numpy as np
 
 from espl_jax import evaluation, faults, rollout, rundir
 from espl_jax import expression as ex
+from espl_jax.keys import (
+    COEFFICIENTS_OFFSET,
+    FRESH_EPISODES_OFFSET,
+    REFERENCE_FIRST_EPISODE,
+    REPORT,
+    SELECTION,
+    offset_key,
+    salted,
+)
 from espl_jax.sac import TrainState
 from espl_jax.seeds import one_seed
 from espl_jax.symbolic import live_paths
@@ -72,13 +81,12 @@ def finish(
     train_params, test_params = trainer.tasks
     write_tasks(trainer, run_dir)
 
-    keys = jax.vmap(jax.random.fold_in, (0, None))
-    test = gather(adapter(trainer, test_params)(state, keys(state.key, 3)))
+    test = gather(adapter(trainer, test_params)(state, salted(state.key, REPORT)))
     faults.kill_point("protocol")  # between the test tasks' protocol and the training tasks'
     # PEARL also evaluates on as many training tasks as there are test tasks.
     n = min(family.n_test, family.n_train)
     subset = jax.tree.map(lambda x: x[:n], train_params)
-    train = gather(adapter(trainer, subset)(state, keys(state.key, 2)))
+    train = gather(adapter(trainer, subset)(state, salted(state.key, SELECTION)))
     test_returns = np.asarray(test.final_return)  # [S, tasks, runs]
     train_returns = np.asarray(train.final_return)
     best = int(np.argmax(train_returns.mean(axis=(1, 2)))) if cfg.seeds > 1 else 0
@@ -187,7 +195,7 @@ def _fresh_episodes(
         mask = actor.eval_mask(policy)
         return rollout.evaluate(env, actor, policy, mask, task, key, FRESH_EPISODES)
 
-    keys = jax.random.split(jax.random.PRNGKey(trainer.config.seed + 10_000), zs.shape[0])
+    keys = jax.random.split(offset_key(trainer.config.seed, FRESH_EPISODES_OFFSET), zs.shape[0])
     fresh = np.asarray(jax.jit(jax.vmap(one))(zs, trainer.tasks[1], keys))
     for entry, returns in zip(result["test"]["per_task"], fresh, strict=True):
         entry["fresh_return"] = float(returns.mean())
@@ -212,7 +220,7 @@ def _fresh_policy_py(
             kwargs = family.host_kwargs(test_params, i) if trainer.on_host else entry["params"]
             policy = evaluation.load_policy(path)
             returns = evaluation.rollout_returns(
-                policy.act, trainer.config.env, FRESH_EPISODES, 0, **kwargs
+                policy.act, trainer.config.env, FRESH_EPISODES, REFERENCE_FIRST_EPISODE, **kwargs
             )
             entry["policy_py_return"] = float(returns.mean())
             returns_all.append(returns.mean())
@@ -238,7 +246,7 @@ def coefficient_figure(trainer: Trainer, state: TrainState, best: int, run_dir: 
     tasks = tasks.replace(force_mag=jnp.asarray(grid_f), length=jnp.asarray(grid_l))
     single = one_seed(state, best)
     adapted = jax.jit(lambda s, p, k: trainer.adapt(s, p, k))(
-        single, tasks, jax.random.PRNGKey(trainer.config.seed + 20_000)
+        single, tasks, offset_key(trainer.config.seed, COEFFICIENTS_OFFSET)
     )
     actor = trainer.actor
 

@@ -27,6 +27,7 @@ from espl_jax import config as config_lib
 from espl_jax import expression as ex
 from espl_jax import halloffame as hof
 from espl_jax.config import Config, UserError
+from espl_jax.keys import PROGRESS_EVAL, REFERENCE_FIRST_EPISODE, REPORT, SELECTION, salted
 from espl_jax.sac import TrainState
 from espl_jax.seeds import one_seed
 from espl_jax.trainer import Trainer, gather
@@ -185,7 +186,7 @@ def _train(
                 # Keep the failing chunk's rows, so the user can see what diverged and how.
                 rundir.append_metrics(out / rundir.METRICS_FILE, metrics, None)
                 raise TrainingDiverged(diverged + "; " + _kept(run_dir, mngr.latest_step()))
-            eval_keys = jax.vmap(jax.random.fold_in, (0, None))(new_state.key, 1)
+            eval_keys = salted(new_state.key, PROGRESS_EVAL)
             eval_returns = gather(progress_eval(new_state, eval_keys))
             rundir.append_metrics(out / rundir.METRICS_FILE, metrics, eval_returns)
             state = new_state
@@ -347,11 +348,11 @@ def finish(
     actors, source = exported_actors(trainer, state)
     # Select on one set of episodes, report on a fresh one, so the reported figure is unbiased.
     # A single seed needs no selection (for MJX envs it would double the final evaluation).
-    report_keys = jax.vmap(jax.random.fold_in, (0, None))(state.key, 3)
+    report_keys = salted(state.key, REPORT)
     report = gather(evaluate(actors, report_keys))
     best = 0
     if cfg.seeds > 1:
-        select_keys = jax.vmap(jax.random.fold_in, (0, None))(state.key, 2)
+        select_keys = salted(state.key, SELECTION)
         selection = gather(evaluate(actors, select_keys))
         best = int(np.argmax(selection.mean(axis=1)))
 
@@ -389,7 +390,9 @@ def finish(
 
         def reference() -> None:
             policy = evaluation.load_policy(run_dir / rundir.POLICY_FILE)
-            returns = evaluation.rollout_returns(policy.act, cfg.env, cfg.reference_eval_episodes)
+            returns = evaluation.rollout_returns(
+                policy.act, cfg.env, cfg.reference_eval_episodes, REFERENCE_FIRST_EPISODE
+            )
             result["reference_eval"] = evaluation.summary(returns)
 
         rundir.warn_on_failure(warnings, "reference evaluation of policy.py", reference)

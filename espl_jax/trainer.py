@@ -32,6 +32,7 @@ import numpy as np
 
 from espl_jax import envs, pearl, replay, rollout, selector
 from espl_jax.config import Config, UserError
+from espl_jax.keys import POSTERIOR_DRAW, seed_keys
 from espl_jax.policies import META_ACTORS, SINGLE_TASK_ACTORS, Actor, make_actor
 from espl_jax.rollout import Rollout
 from espl_jax.sac import SAC, Metrics, TrainState, task_keys
@@ -253,8 +254,7 @@ class Trainer:
     def seed_keys(self) -> jax.Array:
         """[S, 2]: seed i of a ``--seeds S --seed K`` run is ``PRNGKey(K + i)``, the key of a
         one-seed ``--seed K+i`` run, so a sweep's seeds are the single runs' seeds."""
-        seeds = self.config.seed + np.arange(self.config.seeds)
-        return jnp.stack([jax.random.PRNGKey(int(s)) for s in seeds])
+        return seed_keys(self.config.seed, self.config.seeds)
 
     def init_seeds(self) -> TrainState:
         """States for ``config.seeds`` seeds stacked on a leading axis (sharded, see ``place``)."""
@@ -414,7 +414,7 @@ class Trainer:
 
         def one(p, k_r, k_c, mu_t, var_t):
             r = rollout.reset(env, p, k_r, env.action_dim)
-            draw = self._draw(state.actor, mu_t, var_t, jax.random.fold_in(k_c, 1))
+            draw = self._draw(state.actor, mu_t, var_t, jax.random.fold_in(k_c, POSTERIOR_DRAW))
             part, mask = draw(0)  # the first step draws it again; this fixes the carry's shape
             return self._collect(r, p, state.actor, part, mask, k_c, steps, draw)
 

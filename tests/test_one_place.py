@@ -16,10 +16,43 @@ import pytest
 import sympy as sp
 
 from espl_jax import expression as ex
+from espl_jax import keys
 from espl_jax.envs.base import Environment
 from espl_jax.envs.box2d import HostEnv
 from espl_jax.evaluation import load_policy
 from espl_jax.seeds import one_seed, take
+
+# Key streams ------------------------------------------------------------------------------------
+
+
+def test_salts_keep_the_values_every_earlier_run_used():
+    # Changing one changes every run's results: these are the numbers of run.py, host.py,
+    # host_meta.py, meta.py, trainer.py and sac.py before they got names.
+    assert (keys.PROGRESS_EVAL, keys.SELECTION, keys.REPORT) == (1, 2, 3)
+    assert (keys.HOST_RESET, keys.HOST_WARMUP) == (4, 5)
+    assert (keys.POSTERIOR_DRAW, keys.ENCODER) == (1, 1)
+    assert (keys.FRESH_EPISODES_OFFSET, keys.COEFFICIENTS_OFFSET) == (10_000, 20_000)
+    assert (keys.REFERENCE_FIRST_EPISODE, keys.EVALUATE_FIRST_EPISODE) == (0, 10_000)
+
+
+def test_salts_of_the_state_key_are_distinct():
+    salts = [keys.PROGRESS_EVAL, keys.SELECTION, keys.REPORT, keys.HOST_RESET, keys.HOST_WARMUP]
+    assert len(set(salts)) == len(salts)
+
+
+def test_key_helpers_are_the_expressions_they_replaced():
+    state_keys = jnp.stack([jax.random.PRNGKey(3), jax.random.PRNGKey(11)])
+    np.testing.assert_array_equal(
+        keys.salted(state_keys, keys.REPORT),
+        jax.vmap(jax.random.fold_in, (0, None))(state_keys, 3),
+    )
+    np.testing.assert_array_equal(
+        keys.seed_keys(7, 3), jnp.stack([jax.random.PRNGKey(s) for s in (7, 8, 9)])
+    )
+    np.testing.assert_array_equal(
+        keys.offset_key(2, keys.COEFFICIENTS_OFFSET), jax.random.PRNGKey(2 + 20_000)
+    )
+
 
 # Per-seed slicing -------------------------------------------------------------------------------
 
