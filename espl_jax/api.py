@@ -8,7 +8,7 @@ command line's config resolution: defaults < configs/ENV.yaml < ``config`` file 
 Thin by design: every value is read from the run directory's files or computed by the functions
 the command-line tools use (the hall of fame's exact rows, ``halloffame.pick``; ``run.restore``,
 ``run.exported_actors`` and ``ex.export_expressions`` as at the end of training;
-``meta.task_expressions``), so the formula of :meth:`Run.policy` is the one the run's
+``meta_report.task_expressions``), so the formula of :meth:`Run.policy` is the one the run's
 ``policy.py`` evaluates, and :meth:`Run.pick` chooses as ``python -m espl_jax.export --pick``.
 Nothing here writes to the run directory. NOT jittable, except what :meth:`Formula.to_jax` returns.
 """
@@ -37,8 +37,8 @@ from espl_jax import run as run_lib
 from espl_jax.cli import check_path, use_compilation_cache
 from espl_jax.config import Config, UserError
 from espl_jax.envs.base import action_center_half_range, to_env_units
+from espl_jax.learner import Trainer, gather
 from espl_jax.seeds import one_seed
-from espl_jax.trainer import Trainer, gather
 
 PICKS = ("best", "shortest-within")
 # The hall-of-fame table's columns, in formulas.jsonl's names (``halloffame``'s module docstring).
@@ -214,12 +214,14 @@ class Run:
     @property
     def tasks(self) -> dict[str, Any]:
         """Meta-RL runs: tasks.json, each training and test task's params in the env's units."""
-        from espl_jax import meta
+        from espl_jax import meta_report
 
         self._require_meta()
-        path = self.path / meta.TASKS_FILE
+        path = self.path / meta_report.TASKS_FILE
         if not path.is_file():
-            raise UserError(f"{self.path} has no {meta.TASKS_FILE}: its training has not finished")
+            raise UserError(
+                f"{self.path} has no {meta_report.TASKS_FILE}: its training has not finished"
+            )
         return json.loads(path.read_text())
 
     @property
@@ -321,7 +323,7 @@ class Run:
         Raises:
             UserError: not a CSP run, no eval.json, a task index out of range.
         """
-        from espl_jax import meta
+        from espl_jax import meta_report
 
         self._require_meta()
         self._require_formula()
@@ -332,7 +334,7 @@ class Run:
         best = record["best_seed"]
         actor = one_seed(self._state.actor, best)
         entry = tasks[task]
-        exprs = meta.task_expressions(self._trainer, actor, entry["z"])
+        exprs = meta_report.task_expressions(self._trainer, actor, entry["z"])
         return self._formula(exprs, task=task, seed=best, params=entry["params"])
 
     # Internals ----------------------------------------------------------------------------------

@@ -39,7 +39,7 @@ from espl_jax.selector import EXPORT_WEIGHT_THRESHOLD
 from espl_jax.symbolic import SymbolicNetwork
 
 if TYPE_CHECKING:
-    from espl_jax.trainer import Trainer
+    from espl_jax.learner import Trainer
 
 # Readable expressions longer than this are not passed to sympy.simplify, whose cost grows
 # steeply with size (measured on 2 cores: length 5 in 0.4 s, length 116 in ~20 s); they are still

@@ -33,9 +33,9 @@ import numpy as np
 
 from espl_jax import replay, rollout
 from espl_jax.keys import HOST_RESET, salted
+from espl_jax.learner import Trainer
 from espl_jax.rollout import Rollout
 from espl_jax.sac import Metrics, TrainState
-from espl_jax.trainer import Trainer
 
 
 def env_seeds(keys: jax.Array) -> list[int]:

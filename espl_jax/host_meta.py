@@ -28,11 +28,11 @@ import numpy as np
 from espl_jax import pearl, replay, rollout
 from espl_jax.host import env_seeds, host_chunk
 from espl_jax.keys import HOST_WARMUP, salted
+from espl_jax.learner import Trainer
 from espl_jax.replay import Transition
 from espl_jax.rollout import Adapted
 from espl_jax.sac import Metrics, TrainState
 from espl_jax.seeds import take
-from espl_jax.trainer import Trainer
 
 
 class HostMetaCollector:

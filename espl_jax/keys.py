@@ -14,34 +14,35 @@ Where a run's randomness comes from:
 
 Salts folded into each seed's ``TrainState.key`` (``salted``), one stream each:
 
-    name           salt  stream                                                        module
-    PROGRESS_EVAL  1     evaluation episodes after each chunk (metrics.jsonl)          run
-    SELECTION      2     single-task: the episodes the best seed is chosen on;         run, meta
+    name           salt  stream                                                    module
+    PROGRESS_EVAL  1     evaluation episodes after each chunk (metrics.jsonl)      run
+    SELECTION      2     single-task: the episodes the best seed is chosen on;     run, meta_report
                          meta-RL: PEARL's protocol on training tasks (chooses it)
-    REPORT         3     single-task: the reported final episodes (eval.json);         run, meta
+    REPORT         3     single-task: the reported final episodes (eval.json);     run, meta_report
                          meta-RL: PEARL's protocol on the test tasks
-    HOST_RESET     4     gymnasium env seeds of a host collector's (re)start           host
-    HOST_WARMUP    5     gymnasium meta-RL: PEARL's initial collection                 host_meta
+    HOST_RESET     4     gymnasium env seeds of a host collector's (re)start       host
+    HOST_WARMUP    5     gymnasium meta-RL: PEARL's initial collection             host_meta
 
 Salts folded into a sub-key (a different key from the above, so the values may repeat):
 
-    POSTERIOR_DRAW 1     meta-RL collection: a phase's z draws and masks, folded into  trainer
-                         the trajectory's collection key
-    ENCODER        1     PEARL's encoder init, and the critic loss's z sample          sac
+    POSTERIOR_DRAW 1     meta-RL collection: a phase's z draws and masks, folded   learner
+                         into the trajectory's collection key
+    ENCODER        1     PEARL's encoder init, and the critic loss's z sample      sac
 
 ``sac.py`` writes ``ENCODER``'s salt as the literal ``1`` (it is left to its own change).
 
 Offsets added to ``config.seed`` for fresh keys of the meta-RL end-of-run report (``offset_key``):
 
-    FRESH_EPISODES_OFFSET  10_000  fresh episodes of each test task's adapted formula   meta
-    COEFFICIENTS_OFFSET    20_000  the protocol on the coefficient figure's task grid   meta
+    FRESH_EPISODES_OFFSET  10_000  fresh episodes of each test task's adapted formula   meta_report
+    COEFFICIENTS_OFFSET    20_000  the protocol on the coefficient figure's task grid   meta_report
 
 Gymnasium episode seeds (``env.reset(seed=first + i)``), not JAX keys:
 
-    REFERENCE_FIRST_EPISODE  0       a run's own evaluation of policy.py (eval.json's      run, meta
-                                     ``reference_eval``; meta-RL ``policy_py_return``)
-    EVALUATE_FIRST_EPISODE   10_000  ``python -m espl_jax.evaluate``'s default ``--seed``:  evaluate
-                                     episodes the run's own evaluation did not see
+    REFERENCE_FIRST_EPISODE  0       a run's own evaluation of policy.py (eval.json's
+                                     ``reference_eval``; meta-RL ``policy_py_return``):
+                                     run, meta_report
+    EVALUATE_FIRST_EPISODE   10_000  ``python -m espl_jax.evaluate``'s default ``--seed``,
+                                     episodes the run's own evaluation did not see: evaluate
 
 The benchmarks (``benchmarks/*.py``) draw their own fixed keys (``PRNGKey(0)`` … ``PRNGKey(7)``)
 for timing and diagnostics outside a run; they are not run streams and are not listed.

@@ -19,7 +19,7 @@ from espl_jax import expression as ex
 from espl_jax import keys
 from espl_jax.envs.base import Environment
 from espl_jax.envs.box2d import HostEnv
-from espl_jax.evaluation import load_policy
+from espl_jax.reference_eval import load_policy
 from espl_jax.seeds import one_seed, take
 
 # Key streams ------------------------------------------------------------------------------------
@@ -27,7 +27,8 @@ from espl_jax.seeds import one_seed, take
 
 def test_salts_keep_the_values_every_earlier_run_used():
     # Changing one changes every run's results: these are the numbers of run.py, host.py,
-    # host_meta.py, meta.py, trainer.py and sac.py before they got names.
+    # host_meta.py, meta.py (now meta_report.py), trainer.py (now learner.py) and sac.py before
+    # they got names.
     assert (keys.PROGRESS_EVAL, keys.SELECTION, keys.REPORT) == (1, 2, 3)
     assert (keys.HOST_RESET, keys.HOST_WARMUP) == (4, 5)
     assert (keys.POSTERIOR_DRAW, keys.ENCODER) == (1, 1)
@@ -110,8 +111,9 @@ def test_env_scaling_is_the_formula_training_used(low, high):
 
 @pytest.mark.parametrize("low, high", BOUNDS)
 def test_policy_py_and_env_agree_bit_for_bit_on_the_boundary(low, high, tmp_path):
-    """The exported policy.py sends the reference env (as float32, ``evaluation.rollout_returns``)
-    exactly the action the training env steps with, at u = ±1 and next to it."""
+    """The exported policy.py sends the reference env (as float32, in
+    ``reference_eval.rollout_returns``) exactly the action the training env steps with, at u = ±1
+    and next to it."""
     env = _env(low, high, dim=2)
     source = ex.to_python([sp.Float(30.0), sp.Float(-30.0)], 1, env.action_low, env.action_high)
     path = tmp_path / "policy.py"

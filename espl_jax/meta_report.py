@@ -1,6 +1,6 @@
-"""The end of a meta-RL run (CSP, PEARL, Hyper): evaluation by PEARL's protocol and the adapted
-formulas. NOT jittable: host I/O, export and plotting; the protocol itself runs in JAX
-(``Trainer.adapt``). Written into the run directory beside what every run has:
+"""The end-of-run report of a meta-RL run (CSP, PEARL, Hyper): evaluation by PEARL's protocol
+and the adapted formulas. NOT jittable: host I/O, export and plotting; the protocol itself runs in
+JAX (``Trainer.adapt``). Written into the run directory beside what every run has:
 
     tasks.json               {"seed", "train": [...], "test": [...]}: each task's params in the
                              env's own units (``TaskFamily.describe``)
@@ -24,8 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from espl_jax import evaluation, faults, rollout, rundir
 from espl_jax import expression as ex
+from espl_jax import faults, reference_eval, rollout, rundir
 from espl_jax.keys import (
     COEFFICIENTS_OFFSET,
     FRESH_EPISODES_OFFSET,
@@ -35,10 +35,10 @@ from espl_jax.keys import (
     offset_key,
     salted,
 )
+from espl_jax.learner import Trainer, gather
 from espl_jax.sac import TrainState
 from espl_jax.seeds import one_seed
 from espl_jax.symbolic import live_paths
-from espl_jax.trainer import Trainer, gather
 
 TASKS_FILE = "tasks.json"
 TEST_TASKS_DIR = "test_tasks"
@@ -200,7 +200,7 @@ def _fresh_episodes(
     for entry, returns in zip(result["test"]["per_task"], fresh, strict=True):
         entry["fresh_return"] = float(returns.mean())
     result["test"]["fresh_mean"] = float(fresh.mean())
-    if evaluation.has_reference(trainer.config.env):
+    if reference_eval.has_reference(trainer.config.env):
         _fresh_policy_py(trainer, result, policy_files, warnings)
 
 
@@ -218,8 +218,8 @@ def _fresh_policy_py(
             zip(result["test"]["per_task"], policy_files, strict=True)
         ):
             kwargs = family.host_kwargs(test_params, i) if trainer.on_host else entry["params"]
-            policy = evaluation.load_policy(path)
-            returns = evaluation.rollout_returns(
+            policy = reference_eval.load_policy(path)
+            returns = reference_eval.rollout_returns(
                 policy.act, trainer.config.env, FRESH_EPISODES, REFERENCE_FIRST_EPISODE, **kwargs
             )
             entry["policy_py_return"] = float(returns.mean())

@@ -1,4 +1,7 @@
-"""One trainer for ESPL (Algorithm 1) and CSP, PEARL and Hyper (Algorithm 2).
+"""The learner: one ``Trainer`` for ESPL (Algorithm 1) and CSP, PEARL and Hyper (Algorithm 2).
+
+The library side of training (``python -m espl_jax.train`` is the command line, ``espl_jax.run``
+the loop that writes a run directory).
 
 A single-task env is the one-task, no-context case: T = 1 task (the env's default params), a
 (0,)-sized latent, no encoder. A meta-RL task family gives T = ``n_train`` training tasks, a
