@@ -587,7 +587,7 @@ def to_python(
         formula=to_text(exprs),
         low=[float(v) for v in action_low],
         high=[float(v) for v in action_high],
-        to_env_units=inspect.getsource(to_env_units),
+        to_env_units=inspect.getsource(to_env_units).rstrip(),
         obs_dim=obs_dim,
         action_dim=len(exprs),
         unpack=unpack,
