@@ -72,13 +72,21 @@ def test_one_seed_is_a_host_copy_of_one_seed():
 
 
 def _near_boundary() -> np.ndarray:
-    """float32 u at and next to ±1 and 0, and outside [-1, 1] (clipped)."""
+    """float32 u at and next to ±1 and 0, and outside [-1, 1] (clipped).
+
+    The tiny ones tell the formulas apart: the earlier policy.py computed
+    ``low + (u + 1) / 2 · (high − low)``, which rounds u through u + 1 and, for |u| below ~2e-9,
+    missed the env's float32 action (about a quarter of such u; all four here, for every bound
+    in ``BOUNDS``)."""
     one = np.float32(1.0)
     near = [one]
     for _ in range(4):
         near.append(np.nextafter(near[-1], np.float32(0.0)))
     near = np.array(near, np.float32)
-    tiny = np.array([0.0, 1e-8, 3e-4, 0.5, 0.999], np.float32)
+    tiny = np.array(
+        [0.0, 7.9e-12, 1.11043804e-11, 1.5059646e-11, 4.4980485e-11, 1e-8, 3e-4, 0.5, 0.999],
+        np.float32,
+    )
     outside = np.array([1.0 + 2**-23, 1.5, 1e6], np.float32)
     u = np.concatenate([near, tiny, outside])
     return np.concatenate([u, -u]).astype(np.float32)
