@@ -19,6 +19,10 @@ from pathlib import Path
 from env_throughput import write_result
 
 from espl_jax import config as config_lib
+from espl_jax import rundir
+
+# Config keys a row records when they differ from the defaults (what a comparison varies).
+VARIED = ("critic", "critic_layer_norm", "critic_hidden", "updates_per_iteration", "iterations")
 
 
 def summary(run_dir: Path) -> dict:
@@ -38,6 +42,18 @@ def summary(run_dir: Path) -> dict:
         "iterations": record["training"]["iterations"],
         "wall_seconds_training": record["training"]["wall_seconds_training"],
     }
+    defaults = config_lib.Config()
+    row["config"] = {
+        k: config_lib._plain(getattr(cfg, k))
+        for k in VARIED
+        if getattr(cfg, k) != getattr(defaults, k)
+    }
+    # The learning curve: (env steps, mean progress-evaluation return) after each chunk.
+    curve = {}
+    for m in rundir.read_metrics(run_dir / rundir.METRICS_FILE):
+        if m.get("eval_return") is not None:
+            curve[m["env_steps"]] = m["eval_return"]
+    row["curve"] = sorted(curve.items())
     if "test" in record:
         row |= {"test_return": record["test"]["mean"], "train_return": record["train"]["mean"]}
         row |= {k: record[k] for k in ("length", "selected_paths_per_action") if k in record}

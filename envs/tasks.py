@@ -1,4 +1,5 @@
-"""Meta-RL task families (paper App. B.2 "Meta-RL"; DESIGN.md "Meta-RL"), gymnax-style.
+"""Meta-RL task families (paper App. B.2 "Meta-RL"; docs/design.md "Meta-RL task families"),
+gymnax-style.
 
 A task family is an env plus two seeded task sets. A task is the env's own params pytree (the
 ``params`` argument of ``reset``/``step``), so a task set is that pytree with a leading task axis

@@ -26,6 +26,7 @@ learned policy at all (a constant offset in the formula pushes the system off it
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 from collections.abc import Callable, Sequence
@@ -84,7 +85,10 @@ def exported_expressions(run_dir: str | Path, seed: int | None = None) -> list[s
     seed = best_seed(run_dir) if seed is None else seed
     if not 0 <= seed < trainer.config.seeds:
         raise UserError(f"--seed must be in [0, {trainer.config.seeds - 1}]")
-    actor = one_seed(state.actor, seed)
+    # The actor the run exported (the hall of fame's anchor with keep_best_formula), not
+    # necessarily the newest one: the formula of expression.txt and policy.py.
+    actors, _ = run.exported_actors(trainer, state)
+    actor = one_seed(actors, seed)
     return ex.export_expressions(trainer, actor)
 
 
@@ -126,9 +130,14 @@ EQUILIBRIA = {
 }
 
 
+def has_equilibrium(env_name: str) -> bool:
+    """Whether ``closed_loop`` can analyse formulas of ``env_name`` (it is in ``EQUILIBRIA``)."""
+    return env_name in EQUILIBRIA
+
+
 def check_has_equilibrium(env_name: str) -> None:
     """Raises a UserError for an env without a defined equilibrium."""
-    if env_name not in EQUILIBRIA:
+    if not has_equilibrium(env_name):
         raise UserError(
             f"no equilibrium defined for {env_name}; analyze knows {', '.join(EQUILIBRIA)}"
         )
@@ -208,12 +217,13 @@ def closed_loop(
 
     Returns:
         A JSON-serialisable dict: ``verdict`` ("stable", "marginal" or "unstable") and
-        ``summary``; ``modes`` (one per eigenvalue, largest |λ| first: ``discrete`` λ and
-        ``continuous`` μ as [re, im], ``abs`` |λ|, ``kind``, ``dominant_state``); ``jacobian``
-        (n, n); ``continuous_time`` (how μ was obtained); ``fixed_point_residual`` ‖f(x*) − x*‖
-        with ``fixed_point_offset`` f(x*) − x* (n,), ``pre_tanh_at_equilibrium`` and
-        ``action_at_equilibrium`` (action_dim,), normalised to [-1, 1]; plus ``env``,
-        ``equilibrium``, ``state_names``, ``dt``, ``tolerance``, ``jacobian_at``.
+        ``summary``; ``spectral_radius``, the largest |λ|; ``modes`` (one per eigenvalue,
+        largest |λ| first: ``discrete`` λ and ``continuous`` μ as [re, im], ``abs`` |λ|,
+        ``kind``, ``dominant_state``); ``jacobian`` (n, n); ``continuous_time`` (how μ was
+        obtained); ``fixed_point_residual`` ‖f(x*) − x*‖ with ``fixed_point_offset``
+        f(x*) − x* (n,), ``pre_tanh_at_equilibrium`` and ``action_at_equilibrium``
+        (action_dim,), normalised to [-1, 1]; plus ``env``, ``equilibrium``, ``state_names``,
+        ``dt``, ``tolerance``, ``jacobian_at``.
 
     Raises:
         UserError: the env has no equilibrium defined.
@@ -221,22 +231,26 @@ def closed_loop(
     """
     if len(exprs) != env.action_dim:
         raise ValueError(f"{env.name} has {env.action_dim} actions, got {len(exprs)} expressions")
-    params = env.default_params if params is None else params
-    eq = equilibrium(env, params)
+    eq = equilibrium(env, env.default_params if params is None else params)
+    observe, advance = _linearisation(env) if params is None else _linearise(env, params)
     pre_tanh = ex.to_jax(exprs)
 
-    def step(x):
-        s = eq.state(x)
-        u = pre_tanh(eq.obs(s))
-        _, s_next, *_ = env.step(jax.random.key(0), s, jnp.tanh(u), params)
-        x_next = eq.vector(s_next)
-        return x_next, (x_next, u)
-
-    # J at x*, x* + δ and x* − δ in one compiled call (MJX's step compiles in ~1 min on CPU)
+    # J at x*, x* + δ and x* − δ. The chain rule through the policy,
+    #     J = ∂f/∂x + ∂f/∂a · diag(1 − tanh²(u)) · ∂u/∂o · ∂o/∂x,
+    # keeps the formula out of the compiled env parts: those compile once per env (MJX's step
+    # with its Jacobian takes ~1 min on CPU), and each formula costs milliseconds after that
+    # (the hall of fame analyses every chunk's formula).
     point = jnp.asarray(eq.point, jnp.float32)
     points = jnp.stack([point, point + NUDGE, point - NUDGE])
-    jacobians, (images, pre) = jax.jit(jax.vmap(jax.jacfwd(step, has_aux=True)))(points)
-    jacobians = np.asarray(jacobians, np.float64)
+    obs, obs_jac = observe(points)  # [3, obs_dim], [3, obs_dim, n]
+    pre = jnp.asarray(pre_tanh(obs)).reshape(3, env.action_dim)
+    pre_jac = jax.vmap(jax.jacfwd(pre_tanh))(obs).reshape(3, env.action_dim, -1)
+    images, step_jac, action_jac = advance(points, jnp.tanh(pre))  # [3, n], [3, n, n], [3, n, a]
+    pre64 = np.asarray(pre, np.float64)
+    policy_jac = (1 - np.tanh(pre64) ** 2)[..., None] * np.asarray(pre_jac, np.float64)
+    jacobians = np.asarray(step_jac, np.float64) + np.asarray(action_jac, np.float64) @ (
+        policy_jac @ np.asarray(obs_jac, np.float64)
+    )
     jac, jacobian_at = jacobians[0], "equilibrium"
     if not np.all(np.isfinite(jac)):
         jac = (jacobians[1] + jacobians[2]) / 2
@@ -248,7 +262,7 @@ def closed_loop(
     residual = float(np.linalg.norm(offset))
     modes = _modes(jac, eq, tolerance)
     verdict, summary = _verdict(modes, tolerance)
-    pre0 = np.asarray(pre[0], np.float64)
+    pre0 = pre64[0]
     if residual > FIXED_POINT_TOLERANCE:
         summary += (
             f"; x* is not a fixed point under this policy (‖f(x*) − x*‖ = {residual:.3g}, "
@@ -262,6 +276,7 @@ def closed_loop(
         "dt": eq.dt,
         "tolerance": tolerance,
         "verdict": verdict,
+        "spectral_radius": modes[0]["abs"],
         "summary": summary,
         "continuous_time": (
             "(λ − 1)/Δt: exact, the env is explicit Euler (J = I + Δt ∂g/∂x)"
@@ -276,6 +291,39 @@ def closed_loop(
         "jacobian": jac.tolist(),
         "jacobian_at": jacobian_at,
     }
+
+
+def _linearise(env: Any, params: Any) -> tuple[Callable, Callable]:
+    """The env's parts of the closed-loop Jacobian, compiled, at a batch of state vectors:
+
+    - ``observe(x [B, n]) -> (o [B, obs_dim], ∂o/∂x [B, obs_dim, n])``;
+    - ``advance(x [B, n], a [B, action_dim]) -> (f [B, n], ∂f/∂x [B, n, n], ∂f/∂a [B, n, a])``,
+      ``f`` the state after one ``env.step`` with the tanh-squashed action ``a``.
+
+    Forward mode (``jax.jacfwd``): MJX's constraint solver is a ``while_loop``.
+    """
+    eq = equilibrium(env, params)
+
+    def obs(x):
+        return eq.obs(eq.state(x))
+
+    def step(x, a):
+        _, s_next, *_ = env.step(jax.random.key(0), eq.state(x), a, params)
+        return eq.vector(s_next)
+
+    def observe(x):
+        return obs(x), jax.jacfwd(obs)(x)
+
+    def advance(x, a):
+        return step(x, a), *jax.jacfwd(step, argnums=(0, 1))(x, a)
+
+    return jax.jit(jax.vmap(observe)), jax.jit(jax.vmap(advance))
+
+
+@functools.lru_cache(maxsize=8)
+def _linearisation(env: Any) -> tuple[Callable, Callable]:
+    """``_linearise`` at the env's default params, kept per env instance (compiled once)."""
+    return _linearise(env, env.default_params)
 
 
 def _modes(jac: np.ndarray, eq: Equilibrium, tolerance: float) -> list[dict[str, Any]]:
@@ -358,6 +406,7 @@ def format_report(result: dict[str, Any], formula: str | None = None) -> str:
         )
     if result["jacobian_at"] != "equilibrium":
         lines.append(f"  Jacobian taken as the {result['jacobian_at']}")
+    lines.append(f"  spectral radius max |λ| = {result['spectral_radius']:.6f}")
     lines.append(f"  verdict: {result['summary']}")
     return "\n".join(lines)
 

@@ -40,8 +40,9 @@ from espl_jax.envs.base import action_center_half_range, to_env_units
 from espl_jax.learner import Trainer, gather
 from espl_jax.seeds import one_seed
 
-PICKS = ("best", "shortest-within")
-# The hall-of-fame table's columns, in formulas.jsonl's names (``halloffame``'s module docstring).
+# The hall-of-fame table's columns, in formulas.jsonl's names (``halloffame``'s module docstring):
+# ``stability`` and ``spectral_radius`` are analyze's verdict at the env's equilibrium (None for
+# envs without one).
 HALL_OF_FAME_COLUMNS = (
     "iteration",
     "env_steps",
@@ -49,8 +50,12 @@ HALL_OF_FAME_COLUMNS = (
     "length",
     "selection_return",
     "eligible",
+    "stability",
+    "spectral_radius",
     "formula",
 )
+# How the table prints a column's floats (default: two decimals): radii next to 1 need six.
+FLOAT_FORMATS = {"spectral_radius": "{:.6f}"}
 
 
 @dataclass(frozen=True, eq=False)
@@ -134,9 +139,15 @@ class Table:
     gives the rows. ``to_pandas()`` makes the DataFrame PySR users know as ``equations_``.
     """
 
-    def __init__(self, rows: list[dict[str, Any]], columns: Sequence[str]):
+    def __init__(
+        self,
+        rows: list[dict[str, Any]],
+        columns: Sequence[str],
+        float_formats: dict[str, str] | None = None,
+    ):
         self.columns = tuple(columns)
         self.rows = [{c: r.get(c) for c in self.columns} for r in rows]
+        self.float_formats = dict(float_formats or {})
 
     def __len__(self) -> int:
         return len(self.rows)
@@ -157,12 +168,15 @@ class Table:
         return pd.DataFrame(self.rows, columns=list(self.columns))
 
     def __repr__(self) -> str:
-        def cell(v: Any) -> str:
-            text = f"{v:.2f}" if isinstance(v, float) else str(v)
+        def cell(v: Any, column: str) -> str:
+            if isinstance(v, float):
+                text = self.float_formats.get(column, "{:.2f}").format(v)
+            else:
+                text = str(v)
             text = text.replace("\n", "; ")
             return text if len(text) <= 60 else text[:57] + "..."
 
-        cells = [[cell(r[c]) for c in self.columns] for r in self.rows]
+        cells = [[cell(r[c], c) for c in self.columns] for r in self.rows]
         widths = [
             max([len(c)] + [len(row[i]) for row in cells]) for i, c in enumerate(self.columns)
         ]
@@ -226,10 +240,14 @@ class Run:
 
     @property
     def hall_of_fame(self):
-        """Every chunk's exported formula and seed with its length and selection return, in the
-        order they were found (formulas.jsonl): a pandas DataFrame when pandas is installed,
-        else a :class:`Table`. ``formula`` is None where the network was not pruned yet."""
-        table = Table(hof.read(self._hall_of_fame_file()), HALL_OF_FAME_COLUMNS)
+        """Every chunk's exported formula and seed with its length, selection return and local
+        stability, in the order they were found (formulas.jsonl): a pandas DataFrame when
+        pandas is installed, else a :class:`Table`. ``formula`` is None where the network was
+        not pruned yet; ``stability`` ("stable", "marginal", "unstable") and ``spectral_radius``
+        (the largest |λ| of the closed loop at the env's equilibrium, ``python -m
+        espl_jax.analyze``'s verdict) are None for envs without an equilibrium and for
+        formulas not kept."""
+        table = Table(hof.read(self._hall_of_fame_file()), HALL_OF_FAME_COLUMNS, FLOAT_FORMATS)
         try:
             return table.to_pandas()
         except ImportError:
@@ -291,27 +309,36 @@ class Run:
         """A formula from the hall of fame, as ``python -m espl_jax.export --pick``.
 
         Args:
-            how: ``"best"`` (the highest selection return) or ``"shortest-within"`` (the
+            how: ``"best"`` (the highest selection return), ``"shortest-within"`` (the
                 shortest formula within ``within`` percent of the best selection return:
-                PySR's model selection, for symbolic policies).
-            within: the percentage, for ``"shortest-within"``.
+                PySR's model selection, for symbolic policies) or ``"stable-within"`` (the
+                shortest *locally stable* formula within ``within`` percent of the best: every
+                |λ| < 1 at the env's equilibrium, as ``python -m espl_jax.analyze`` decides;
+                envs with an equilibrium only).
+            within: the percentage, for ``"shortest-within"`` and ``"stable-within"``.
             seed: only this seed's formulas (default: all seeds').
 
         Returns:
             A :class:`Formula`; its ``info`` is the hall-of-fame row it comes from.
+
+        Raises:
+            UserError: a bad ``how``/``within`` or seed; ``"stable-within"`` on an env without
+                an equilibrium, or with no locally stable formula within ``within`` percent.
         """
-        takes_percentage = how == "shortest-within"
-        if how not in PICKS or takes_percentage != (within is not None):
+        takes_percentage = how in ("shortest-within", "stable-within")
+        if how not in hof.PICKS or takes_percentage != (within is not None):
             raise UserError(
-                f"pick takes 'best' or 'shortest-within' with a percentage, e.g. "
-                f"run.pick('shortest-within', 5); got {how!r}, {within!r}"
+                f"pick takes 'best' alone, or 'shortest-within' or 'stable-within' with a "
+                f"percentage, e.g. run.pick('stable-within', 5); got {how!r}, {within!r}"
             )
+        if how == "stable-within":
+            hof.require_stability(self.config.env)  # before reading the hall of fame
         rows = hof.read(self._hall_of_fame_file())
         if seed is not None:
             self._check_seed(seed)
             rows = [r for r in rows if r["seed"] == seed]
-        chosen = hof.pick(rows, how, within)
-        info = {k: chosen[k] for k in HALL_OF_FAME_COLUMNS if k != "formula"}
+        chosen = hof.pick(rows, how, within, env=self.config.env)
+        info = {k: chosen.get(k) for k in HALL_OF_FAME_COLUMNS if k != "formula"}
         return self._formula(hof.expressions(chosen), **info)
 
     # Meta-RL ------------------------------------------------------------------------------------

@@ -77,6 +77,15 @@ class Config:
     reward_scale: float = 1.0
     grad_clip: float = 0.5  # global-norm clip of the policy gradient (authors' code)
     critic_hidden: tuple[int, ...] = (256, 256)
+    # The critics (sac.py). "sac": the paper's twin Q with Polyak-averaged target networks.
+    # "crossq": CrossQ (Bhatt et al., ICLR 2024): batch renormalisation in the critics, no
+    # target network, (s, a) and (s', a') in one joint forward pass, the critics' Adam with
+    # β1 0.5. The actor losses, the symbolic actor, the selector and PEARL's encoder are the
+    # same for both.
+    critic: str = "sac"
+    critic_layer_norm: bool = False  # LayerNorm before each hidden ReLU of the critics
+    crossq_momentum: float = 0.99  # batch renorm's running statistics (sbx)
+    crossq_warmup: int = 100_000  # critic updates with plain batch norm before renorm (sbx)
     std_hidden: tuple[int, ...] = (64, 64, 64)  # F(s), the std network (authors' code)
     mlp_actor_hidden: tuple[int, ...] = (256, 256)  # only for actor == "mlp"
 
@@ -170,6 +179,7 @@ _CHOICES = {
     "selector": ("probabilistic", "l1"),
     "csp_relaxed_mask": ("straight_through", "soft"),
     "physics": ("auto", "mjx", "native"),
+    "critic": ("sac", "crossq"),
 }
 _POSITIVE_INT = (
     "seeds",
@@ -192,7 +202,7 @@ _POSITIVE_INT = (
     "eval_runs",
     "eval_steps",
 )
-_UNIT_INTERVAL = ("gamma", "polyak", "target_l0_ratio", "target_temperature")
+_UNIT_INTERVAL = ("gamma", "polyak", "target_l0_ratio", "target_temperature", "crossq_momentum")
 _POSITIVE_FLOAT = (
     "learning_rate",
     "actor_learning_rate",
@@ -216,6 +226,7 @@ _NON_NEGATIVE_INT = (
     "posterior_steps",
     "eval_exploration_trajectories",
     "devices",
+    "crossq_warmup",
 )
 
 

@@ -1,9 +1,12 @@
 """python -m espl_jax.export RUN_DIR: print or write a run's formula in one of four formats.
 
-- default: the formula of the run's newest checkpoint (the best seed of eval.json);
-- ``--pick best|shortest-within PCT``: one from the hall of fame (formulas.jsonl: every chunk's
-  formula with its selection return), written as expression.txt and policy.py into RUN/picked/
-  (or ``--output DIR``);
+- default: the formula the run exported (the best seed of eval.json), rebuilt from its newest
+  checkpoint: the hall of fame's anchor with ``keep_best_formula``, else the final one;
+- ``--pick best|shortest-within PCT|stable-within PCT``: one from the hall of fame
+  (formulas.jsonl: every chunk's formula with its selection return and local stability), written
+  as expression.txt and policy.py into RUN/picked/ (or ``--output DIR``); ``stable-within`` is the
+  shortest formula that ``python -m espl_jax.analyze`` finds locally stable within PCT percent of
+  the best selection return (envs with an equilibrium only);
 - ``--task I`` (meta-RL runs): the CSP formula adapted to test task I by the protocol.
 """
 
@@ -29,8 +32,9 @@ PICK_DIR = "picked"
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m espl_jax.export",
-        description="Export the symbolic policy of a run: from its newest checkpoint, from its "
-        "hall of fame (--pick), or adapted to a meta-RL test task (--task).",
+        description="Export the symbolic policy of a run: the one it exported (rebuilt from its "
+        "newest checkpoint: the hall of fame's best with keep_best_formula), one from its hall "
+        "of fame (--pick), or the one adapted to a meta-RL test task (--task).",
     )
     p.add_argument("run_dir", help="a run directory written by espl_jax.train")
     p.add_argument("--format", choices=FORMATS, default="text")
@@ -42,8 +46,10 @@ def parser() -> argparse.ArgumentParser:
         "--pick",
         nargs="+",
         metavar="HOW",
-        help="'best' (highest selection return) or 'shortest-within PCT' (the shortest formula "
-        "within PCT percent of the best): writes expression.txt and policy.py",
+        help="'best' (highest selection return), 'shortest-within PCT' (the shortest formula "
+        "within PCT percent of the best) or 'stable-within PCT' (the same among the formulas "
+        "that are locally stable at the env's equilibrium, as python -m espl_jax.analyze "
+        "decides; envs with an equilibrium only): writes expression.txt and policy.py",
     )
     p.add_argument("--task", type=int, help="meta-RL: the formula adapted to test task TASK")
     return p
@@ -84,7 +90,10 @@ def main(argv: list[str] | None = None) -> int:
             )
     if not 0 <= seed < trainer.config.seeds:
         raise UserError(f"--seed must be in [0, {trainer.config.seeds - 1}]")
-    actor = one_seed(state.actor, seed)
+    # The actor the run exported (the hall of fame's anchor with keep_best_formula), not
+    # necessarily the newest one: the formula of expression.txt and policy.py.
+    actors, _ = run.exported_actors(trainer, state)
+    actor = one_seed(actors, seed)
     if trainer.meta:
         tasks = (record or {}).get("test", {}).get("per_task", [])
         if not 0 <= args.task < len(tasks):
@@ -115,15 +124,17 @@ def write(exprs: list, env, fmt: str, output: str | None) -> None:
 def pick(args: argparse.Namespace, config: Config) -> int:
     how = args.pick[0]
     within = None
-    if how == "shortest-within":
+    if how in ("shortest-within", "stable-within"):
         if len(args.pick) != 2:
-            raise UserError("--pick shortest-within takes a percentage, e.g. 5")
+            raise UserError(f"--pick {how} takes a percentage, e.g. 5")
         try:
             within = float(args.pick[1])
         except ValueError:
-            raise UserError(f"--pick shortest-within: {args.pick[1]!r} is not a number") from None
+            raise UserError(f"--pick {how}: {args.pick[1]!r} is not a number") from None
     elif how != "best" or len(args.pick) != 1:
-        raise UserError("--pick takes 'best' or 'shortest-within PCT'")
+        raise UserError("--pick takes 'best', 'shortest-within PCT' or 'stable-within PCT'")
+    if how == "stable-within":
+        hof.require_stability(config.env)  # before reading the hall of fame
     path = Path(args.run_dir) / hof.FORMULAS_FILE
     if not path.is_file():
         raise UserError(f"{args.run_dir} has no hall of fame ({hof.FORMULAS_FILE} is missing)")
@@ -132,7 +143,7 @@ def pick(args: argparse.Namespace, config: Config) -> int:
         if not 0 <= args.seed < config.seeds:
             raise UserError(f"--seed must be in [0, {config.seeds - 1}]")
         rows = [r for r in rows if r["seed"] == args.seed]
-    chosen = hof.pick(rows, how, within)
+    chosen = hof.pick(rows, how, within, env=config.env)
     exprs = hof.expressions(chosen)
     env = run.Trainer(config).env
     out = Path(args.output) if args.output is not None else Path(args.run_dir) / PICK_DIR
@@ -140,9 +151,15 @@ def pick(args: argparse.Namespace, config: Config) -> int:
     (out / rundir.EXPRESSION_FILE).write_text(ex.to_text(exprs) + "\n")
     source = ex.to_python(exprs, env.obs_dim, env.action_low, env.action_high)
     (out / rundir.POLICY_FILE).write_text(source)
+    verdict = chosen.get("stability")
+    stability = (
+        f", {verdict} at the equilibrium (spectral radius {chosen['spectral_radius']:.6f})"
+        if verdict is not None
+        else ""
+    )
     print(
         f"picked iteration {chosen['iteration']}, seed {chosen['seed']}: selection return "
-        f"{chosen['selection_return']:.2f}, length {chosen['length']:.0f}; wrote "
+        f"{chosen['selection_return']:.2f}, length {chosen['length']:.0f}{stability}; wrote "
         f"{out / rundir.EXPRESSION_FILE} and {out / rundir.POLICY_FILE}"
     )
     print(ex.to_text(exprs))

@@ -4,7 +4,9 @@ PEARL's and Hyper's policy networks.
 All are flax Linen modules used functionally (``init``/``apply`` on explicit params). Sizes are
 the paper's (App. C, D) and the reference code's:
 
-- ``TwinQ``: two Q(s, a[, z]) MLPs (SAC's clipped double-Q; 256×2 single-task, 300×3 meta-RL).
+- ``TwinQ``: two Q(s, a[, z]) MLPs (SAC's clipped double-Q; 256×2 single-task, 300×3 meta-RL),
+  optionally with LayerNorm after each hidden layer, or with CrossQ's batch renormalisation
+  (``BatchRenorm``) on the input and after each hidden layer.
 - ``MLP``: ReLU MLP; the std network F(s) (64×3, authors' code) and PEARL's context encoder
   (200×3 on (s, a, r[, s']) → μ and pre-softplus σ² of the latent, PEARL ``MlpEncoder``).
 - ``EnsembleMLP``: one independent MLP per action dimension (the authors' ``EnsembleMLP``):
@@ -26,16 +28,80 @@ import jax
 import jax.numpy as jnp
 
 
+class BatchRenorm(nn.Module):
+    """Batch renormalisation (Ioffe 2017) as CrossQ uses it (Bhatt et al., ICLR 2024).
+
+    Training (``train=True``): normalise with the batch's statistics over every axis but the
+    last, corrected towards the running ones once ``warmup`` training calls have passed:
+    x̂ = (x − μ_B)/σ_B · r + d with r = clip(σ_B/σ, 1/r_max, r_max) and
+    d = clip((μ_B − μ)/σ, −d_max, d_max), both without gradient (plain batch norm before);
+    then the running (μ, σ²) move towards (μ_B, σ²_B) by 1 − ``momentum``. Otherwise normalise
+    with the running statistics. The statistics live in the ``batch_stats`` collection, all
+    float32 (the step count too) so that a gradient over the whole variable dict is defined
+    (and zero for them). r_max 3, d_max 5 and ε 1e-3 are sbx's.
+    """
+
+    momentum: float = 0.99
+    warmup: int = 100_000
+    epsilon: float = 1e-3
+    r_max: float = 3.0
+    d_max: float = 5.0
+
+    @nn.compact
+    def __call__(self, x: jax.Array, train: bool = False) -> jax.Array:
+        features = x.shape[-1]
+        mean = self.variable("batch_stats", "mean", jnp.zeros, (features,), jnp.float32)
+        var = self.variable("batch_stats", "var", jnp.ones, (features,), jnp.float32)
+        steps = self.variable("batch_stats", "steps", jnp.zeros, (), jnp.float32)
+        scale = self.param("scale", nn.initializers.ones, (features,))
+        bias = self.param("bias", nn.initializers.zeros, (features,))
+        if train and not self.is_initializing():
+            axes = tuple(range(x.ndim - 1))
+            batch_mean, batch_var = jnp.mean(x, axes), jnp.var(x, axes)
+            batch_std = jnp.sqrt(batch_var + self.epsilon)
+            running_std = jnp.sqrt(var.value + self.epsilon)
+            r = jax.lax.stop_gradient(
+                jnp.clip(batch_std / running_std, 1.0 / self.r_max, self.r_max)
+            )
+            d = jax.lax.stop_gradient(
+                jnp.clip((batch_mean - mean.value) / running_std, -self.d_max, self.d_max)
+            )
+            x_hat = (x - batch_mean) / batch_std
+            x_hat = jnp.where(steps.value >= self.warmup, x_hat * r + d, x_hat)
+            m = self.momentum
+            mean.value = m * mean.value + (1 - m) * jax.lax.stop_gradient(batch_mean)
+            var.value = m * var.value + (1 - m) * jax.lax.stop_gradient(batch_var)
+            steps.value = steps.value + 1.0
+        else:
+            x_hat = (x - mean.value) / jnp.sqrt(var.value + self.epsilon)
+        return x_hat * scale + bias
+
+
 class MLP(nn.Module):
-    """ReLU MLP with a linear output layer."""
+    """ReLU MLP with a linear output layer; optionally LayerNorm before each hidden ReLU
+    (``layer_norm``), or batch renormalisation on the input and after each hidden ReLU
+    (``renorm``: (momentum, warmup), sbx's CrossQ critic). Without either, the parameters are
+    exactly a plain MLP's (Dense_0 … Dense_n)."""
 
     hidden: Sequence[int]
     out: int
+    layer_norm: bool = False
+    renorm: tuple[float, int] | None = None
 
     @nn.compact
-    def __call__(self, x: jax.Array) -> jax.Array:
+    def __call__(self, x: jax.Array, train: bool = False) -> jax.Array:
+        def normalise(x):
+            if self.renorm is None:
+                return x
+            momentum, warmup = self.renorm
+            return BatchRenorm(momentum, warmup)(x, train)
+
+        x = normalise(x)
         for width in self.hidden:
-            x = nn.relu(nn.Dense(width)(x))
+            x = nn.Dense(width)(x)
+            if self.layer_norm:
+                x = nn.LayerNorm()(x)
+            x = normalise(nn.relu(x))
         return nn.Dense(self.out)(x)
 
 
@@ -43,17 +109,22 @@ class TwinQ(nn.Module):
     """Two independent Q(s, a, z) MLPs (clipped double-Q of SAC). Returns shape (..., 2).
 
     ``z`` is the task latent of meta-RL, (..., latent); single-task runs pass a (0,)-sized z,
-    which leaves the inputs (and so the parameters) exactly those of Q(s, a).
+    which leaves the inputs (and so the parameters) exactly those of Q(s, a). ``train`` matters
+    only with ``renorm`` (batch statistics, which the caller must then mark mutable).
     """
 
     hidden: Sequence[int]
+    layer_norm: bool = False
+    renorm: tuple[float, int] | None = None
 
     @nn.compact
-    def __call__(self, obs: jax.Array, action: jax.Array, z: jax.Array) -> jax.Array:
+    def __call__(
+        self, obs: jax.Array, action: jax.Array, z: jax.Array, train: bool = False
+    ) -> jax.Array:
         z = jnp.broadcast_to(z, (*obs.shape[:-1], z.shape[-1]))
         x = jnp.concatenate([obs, action, z], axis=-1)
-        q1 = MLP(self.hidden, 1, name="q1")(x)
-        q2 = MLP(self.hidden, 1, name="q2")(x)
+        q1 = MLP(self.hidden, 1, self.layer_norm, self.renorm, name="q1")(x, train)
+        q2 = MLP(self.hidden, 1, self.layer_norm, self.renorm, name="q2")(x, train)
         return jnp.concatenate([q1, q2], axis=-1)
 
 

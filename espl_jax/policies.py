@@ -1,4 +1,4 @@
-"""The policy kinds the one trainer learns, behind one interface (DESIGN "One trainer").
+"""The policy kinds the one trainer learns, behind one interface (docs/design.md "One trainer").
 
 Every kind is a tanh-squashed Gaussian a = tanh(μ + σ ε) whose mean and std come from a *task
 policy*: the pytree that acts on one task. ``Actor.at(params, z)`` turns the learned params and a
@@ -15,7 +15,7 @@ The symbolic kinds also give the path-selector masks (Algorithm 1 lines 4 and 11
 a Bernoulli mask for collection and for the critic's target action, the gumbel-sigmoid mask for
 the actor loss, the deterministic mask p > 0.5 (|w| > 1e-3) of the exported formula. The SAC
 losses (``espl_jax.sac``) see only this interface. The z a policy receives from the trainer is
-always ``stop_gradient``-ed: only the critic trains the encoder (Algorithm 2, DESIGN).
+always ``stop_gradient``-ed: only the critic trains the encoder (Algorithm 2, docs/design.md).
 """
 
 from __future__ import annotations

@@ -2,7 +2,8 @@
 
 One ``ReplayBuffer`` holds every task's transitions: ``data`` leaves are [T, capacity, ...],
 ``position`` and ``size`` are [T] (the fill counts live inside the struct). A single-task run is
-T = 1. PEARL's per-task RL buffers and encoder buffers (DESIGN "Meta-RL") are two such structs.
+T = 1. PEARL's per-task RL buffers and encoder buffers (docs/design.md "State") are two such
+structs.
 """
 
 from __future__ import annotations

@@ -5,8 +5,8 @@
   episodes across iterations; the meta-RL phases reset first and draw a new z (and CSP a new
   mask) at the start of every trajectory, as PEARL's sampler does (``draw``).
 - ``evaluate``: deterministic episodes of one fixed task policy (ESPL: the exported formula).
-- ``adapt_and_evaluate``: PEARL's test-task protocol for one run on one task (DESIGN "PEARL
-  evaluation protocol"): start from the prior, collect whole trajectories until ``eval_steps``,
+- ``adapt_and_evaluate``: PEARL's test-task protocol for one run on one task (docs/design.md
+  "One trainer"): start from the prior, collect whole trajectories until ``eval_steps``,
   the context accumulating online from the run itself; after ``exploration_trajectories``
   trajectories z is a sample of the posterior of every transition so far, re-drawn after each
   trajectory; actions are deterministic (CSP: the formula of p > 0.5); the return of the last

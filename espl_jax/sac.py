@@ -14,8 +14,14 @@ trains the encoder); the policy side and the targets see stop_gradient(z).
   then projected (ESPL: p back onto [0, 1], App. C.1). L_select is divided by |A| as in the
   authors' code.
 - α: tuned towards −|A| (Haarnoja et al. 2018b, Eq. 18), or fixed (``auto_alpha: false``).
+- ``critic: crossq`` (Bhatt et al., ICLR 2024) changes the critic only: batch-renormalised
+  critics (networks.BatchRenorm), no target network, y from the same critics evaluated on
+  (s, a) and (s′, a′) in one forward pass in training mode (so both halves share the batch's
+  statistics), stop_gradient on y, the critics' Adam with β1 0.5. The actor reads the critics
+  in evaluation mode (running statistics). ``target_critic`` is then unused.
 
-Order in one step (DESIGN): critic and encoder, actor against the updated critic, α, Polyak.
+Order in one step (docs/design.md "One trainer"): critic and encoder, actor against the updated
+critic, α, Polyak.
 """
 
 from __future__ import annotations
@@ -104,11 +110,21 @@ class SAC:
         return self.actor.action_dim
 
     @property
+    def crossq(self) -> bool:
+        return self.config.critic == "crossq"
+
+    @property
     def critic(self) -> TwinQ:
-        return TwinQ(self.config.critic_hidden)
+        cfg = self.config
+        renorm = (cfg.crossq_momentum, cfg.crossq_warmup) if self.crossq else None
+        return TwinQ(cfg.critic_hidden, cfg.critic_layer_norm, renorm)
 
     @property
     def critic_tx(self) -> optax.GradientTransformation:
+        # The critic variables may hold batch statistics: their gradient is zero, and so is
+        # Adam's step for them; update() then replaces them with the forward pass's.
+        if self.crossq:
+            return optax.adam(self.config.learning_rate, b1=0.5)
         return optax.adam(self.config.learning_rate)
 
     @property
@@ -193,35 +209,52 @@ class SAC:
         batch: replay.Transition,
         context: replay.Transition | None,
         key: jax.Array,
-    ) -> tuple[jax.Array, tuple[Metrics, jax.Array]]:
-        """mean over tasks of Σ_i mean_batch (Q_i(s, a, z) − y)² + β Σ_tasks KL (Algorithm 2)."""
+    ) -> tuple[jax.Array, tuple[Metrics, jax.Array, Any]]:
+        """mean over tasks of Σ_i mean_batch (Q_i(s, a, z) − y)² + β Σ_tasks KL (Algorithm 2).
+
+        Returns (loss, (metrics, z, batch statistics after the pass or None))."""
         actor, cfg = self.actor, self.config
         tasks, size = batch.reward.shape[:2]
         k_mask, k_act = jax.random.split(key)
         z, kl = self.latents(encoder, context, jax.random.fold_in(key, 1), tasks)
         alpha = jnp.exp(state.log_alpha)
 
-        def per_task(b, z_t, k_mask_t, k_act_t):
+        def next_action(b, z_t, k_mask_t, k_act_t):
             policy = actor.at(state.actor, jax.lax.stop_gradient(z_t))
             mask = actor.collect_mask(k_mask_t, policy)
             keys = jax.random.split(k_act_t, size)
-            next_action, next_log_prob, _ = jax.vmap(actor.sample, (0, None, None, 0))(
-                keys, policy, mask, b.next_obs
-            )
-            next_q = self.critic.apply(state.target_critic, b.next_obs, next_action, z_t).min(-1)
-            soft_next = next_q - alpha * next_log_prob
-            target = cfg.reward_scale * b.reward + cfg.gamma * (1.0 - b.terminated) * soft_next
-            q = self.critic.apply(critic, b.obs, b.action, z_t)
-            loss = jnp.sum(jnp.mean((q - jax.lax.stop_gradient(target)[:, None]) ** 2, axis=0))
-            return loss, jnp.mean(q)
+            return jax.vmap(actor.sample, (0, None, None, 0))(keys, policy, mask, b.next_obs)[:2]
 
-        losses, qs = jax.vmap(per_task)(batch, z, task_keys(k_mask, tasks), task_keys(k_act, tasks))
+        next_act, next_log_prob = jax.vmap(next_action)(
+            batch, z, task_keys(k_mask, tasks), task_keys(k_act, tasks)
+        )
+        if self.crossq:  # one pass over (s, a) and (s', a') of every task: shared statistics
+            q_all, updated = self.critic.apply(
+                critic,
+                jnp.concatenate([batch.obs, batch.next_obs], axis=1),
+                jnp.concatenate([batch.action, next_act], axis=1),
+                z[:, None, :],
+                train=True,
+                mutable=["batch_stats"],
+            )
+            q, next_q = q_all[:, :size], q_all[:, size:].min(-1)
+            batch_stats = updated["batch_stats"]
+        else:
+            next_q = jax.vmap(self.critic.apply, (None, 0, 0, 0))(
+                state.target_critic, batch.next_obs, next_act, z
+            ).min(-1)
+            q = jax.vmap(self.critic.apply, (None, 0, 0, 0))(critic, batch.obs, batch.action, z)
+            batch_stats = None
+        soft_next = next_q - alpha * next_log_prob
+        target = cfg.reward_scale * batch.reward + cfg.gamma * (1.0 - batch.terminated) * soft_next
+        error = q - jax.lax.stop_gradient(target)[..., None]
+        losses = jnp.sum(jnp.mean(error**2, axis=1), axis=-1)  # per task: Σ_i mean_batch
         critic_loss = jnp.mean(losses)
         loss = critic_loss + cfg.kl_weight * kl if self.meta else critic_loss
-        metrics = {"critic_loss": critic_loss, "q": jnp.mean(qs)}
+        metrics = {"critic_loss": critic_loss, "q": jnp.mean(q)}
         if self.meta:
             metrics["kl"] = kl / tasks
-        return loss, (metrics, z)
+        return loss, (metrics, z, batch_stats)
 
     def actor_loss(
         self,
@@ -284,11 +317,13 @@ class SAC:
         k_batch, k_critic, k_actor = jax.random.split(key, 3)
         batch, context = self.sample_batch(state, k_batch)
 
-        (_, (c_metrics, z)), (c_grads, e_grads) = jax.value_and_grad(
+        (_, (c_metrics, z, batch_stats)), (c_grads, e_grads) = jax.value_and_grad(
             self.critic_loss, argnums=(0, 1), has_aux=True
         )(state.critic, state.encoder, state, batch, context, k_critic)
         c_updates, critic_opt = self.critic_tx.update(c_grads, state.critic_opt, state.critic)
         critic = optax.apply_updates(state.critic, c_updates)
+        if batch_stats is not None:
+            critic = {**critic, "batch_stats": batch_stats}
         state = state.replace(critic=critic, critic_opt=critic_opt)
         if self.meta:
             e_updates, encoder_opt = self.encoder_tx.update(
@@ -321,7 +356,9 @@ class SAC:
             alpha_updates, alpha_opt = self.alpha_tx.update(alpha_grad, state.alpha_opt)
             log_alpha = optax.apply_updates(state.log_alpha, alpha_updates)
 
-        target = optax.incremental_update(critic, state.target_critic, self.config.polyak)
+        target = state.target_critic
+        if not self.crossq:  # CrossQ has no target network
+            target = optax.incremental_update(critic, target, self.config.polyak)
         state = state.replace(
             actor=actor,
             actor_opt=actor_opt,

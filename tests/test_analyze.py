@@ -9,12 +9,17 @@ import sympy as sp
 from espl_jax import analyze, envs
 from espl_jax import config as config_lib
 from espl_jax import expression as ex
+from espl_jax import halloffame as hof
 from espl_jax.cli import run_main
 from espl_jax.config import UserError
 
 X = ex.observation_symbols(9)
 # Table 3's CartPole law, pre-tanh as our exports are: a = 17.17 θ + 1.2 θ̇ (obs x2 = θ, x3 = θ̇).
 PAPER_CARTPOLE = [17.17 * X[2] + 1.2 * X[3]]
+# Issue 35's formula: 1000.00 in a 20-second episode, yet a slow mode in x grows (|λ| = 1.000187).
+SLOW_DRIFT_CARTPOLE = [0.5417 * X[0] + 26.56 * X[2] + 1.837 * X[3] - 0.1759]
+# With cart-velocity feedback every mode decays.
+STABLE_CARTPOLE = [X[0] + 2.0 * X[1] + 20.0 * X[2] + 2.0 * X[3]]
 
 
 def _continuous(result):
@@ -97,6 +102,27 @@ def test_envs_without_equilibrium_and_wrong_sizes_are_errors():
         analyze.closed_loop(envs.make("mountaincar"), [X[1]])
     with pytest.raises(ValueError, match="1 actions, got 2"):
         analyze.closed_loop(envs.make("cartpole"), PAPER_CARTPOLE * 2)
+
+
+def test_spectral_radius_verdicts_and_one_compile_per_env():
+    """The hall of fame's two numbers (``halloffame.stability``) are closed_loop's, and each
+    formula after the first reuses the env's compiled linearisation."""
+    env = envs.make("cartpole")
+    drift = analyze.closed_loop(env, SLOW_DRIFT_CARTPOLE)
+    assert drift["verdict"] == "unstable"
+    assert drift["spectral_radius"] == max(m["abs"] for m in drift["modes"])
+    assert drift["spectral_radius"] == pytest.approx(1.000187, abs=2e-6)
+    compiled = analyze._linearisation.cache_info().misses
+    stable = analyze.closed_loop(env, STABLE_CARTPOLE)
+    assert analyze._linearisation.cache_info().misses == compiled  # no new compile
+    assert stable["verdict"] == "stable" and stable["spectral_radius"] < 1 - stable["tolerance"]
+    assert hof.stability("cartpole", STABLE_CARTPOLE) == {
+        "stability": "stable",
+        "spectral_radius": pytest.approx(stable["spectral_radius"], abs=1e-9),
+    }
+    assert hof.stability("cartpole", SLOW_DRIFT_CARTPOLE)["stability"] == "unstable"
+    assert hof.stability("mountaincar", [X[1]]) == hof.NOT_ANALYSED  # no equilibrium
+    assert "spectral radius max |λ| = 1.000187" in analyze.format_report(drift)
 
 
 def test_report_names_modes_and_verdict():

@@ -8,6 +8,7 @@ every test here. The meta-RL part (``tasks``, ``adapted``) trains a tiny CSP run
 import importlib
 import importlib.util
 import json
+import shutil
 import subprocess
 import sys
 import tomllib
@@ -20,9 +21,11 @@ import sympy as sp
 import yaml
 
 import espl_jax
-from espl_jax import api, export, rundir
+from espl_jax import analyze, api, envs, export, rundir
 from espl_jax import config as config_lib
+from espl_jax import expression as ex
 from espl_jax import halloffame as hof
+from espl_jax import run as run_lib
 from espl_jax.config import UserError
 
 REPO = Path(__file__).resolve().parent.parent
@@ -141,7 +144,78 @@ def test_pick_is_exports_pick(trained, tmp_path):
     assert str(trained.pick("best")) == str(trained.pick("best", seed=0))
 
 
-@pytest.mark.parametrize("how, within", [("worst", None), ("best", 5), ("shortest-within", None)])
+def test_hall_of_fame_records_each_formulas_local_stability(trained, tmp_path):
+    """Each kept formula's row holds analyze's verdict and spectral radius (cartpole has an
+    equilibrium); the table shows them and the plot draws them."""
+    rows = hof.read(trained.path / hof.FORMULAS_FILE)
+    kept = [r for r in rows if r["protected"] is not None]
+    assert kept, "the tiny run kept no formula: the test would mean nothing"
+    for r in rows:
+        if r["protected"] is None:
+            assert r["stability"] is None and r["spectral_radius"] is None
+            continue
+        result = analyze.closed_loop(envs.make("cartpole"), hof.expressions(r))
+        assert r["stability"] == result["verdict"] in ("stable", "marginal", "unstable")
+        assert r["spectral_radius"] == pytest.approx(result["spectral_radius"], abs=1e-9)
+    table = trained.hall_of_fame
+    assert list(table["stability"]) == [r["stability"] for r in rows]
+    assert list(table["spectral_radius"]) == [r["spectral_radius"] for r in rows]
+    if isinstance(table, api.Table):
+        radius = f"{kept[-1]['spectral_radius']:.6f}"  # six decimals: 1.000187 is not 1.00
+        assert radius in repr(table).splitlines()[-1]
+    assert not any("hall-of-fame plot" in w for w in trained.eval.get("warnings", []))
+    hof.plot(trained.path / hof.FORMULAS_FILE, tmp_path / "hof.png", "cartpole")
+    assert (tmp_path / "hof.png").stat().st_size > 0
+
+
+def test_pick_stable_within_in_the_api_and_the_cli(trained, tmp_path, capsys):
+    """A copy of the run's hall of fame gets a locally stable formula (cart-velocity feedback)
+    in a row written without stability, as before it was recorded: stable-within finds a stable
+    formula there; the API and ``export --pick`` agree."""
+    run_dir = tmp_path / "run"
+    shutil.copytree(trained.path, run_dir, ignore=shutil.ignore_patterns("checkpoints"))
+    rows = hof.read(run_dir / hof.FORMULAS_FILE)
+    x = ex.observation_symbols(4)
+    law = x[0] + 2.0 * x[1] + 20.0 * x[2] + 2.0 * x[3]
+    best = max(r["selection_return"] for r in rows if r["protected"] is not None)
+    old_row = {k: v for k, v in hof.row([law], best, iteration=99, seed=0).items()
+               if k not in ("stability", "spectral_radius")}  # fmt: skip
+    hof.append(run_dir / hof.FORMULAS_FILE, [{**old_row, "eligible": True, "env_steps": 0}])
+    picked = espl_jax.load(run_dir).pick("stable-within", 5)
+    assert picked.info["stability"] == "stable" and picked.info["spectral_radius"] < 1
+    assert picked.length <= ex.mean_complexity([law])
+    assert analyze.closed_loop(envs.make("cartpole"), picked.expressions)["verdict"] == "stable"
+    out = tmp_path / "picked"
+    assert export.main([str(run_dir), "--pick", "stable-within", "5", "-o", str(out)]) == 0
+    assert str(picked) == (out / rundir.EXPRESSION_FILE).read_text().strip()
+    assert "stable at the equilibrium (spectral radius 0." in capsys.readouterr().out
+
+
+def test_export_and_analyze_read_the_exported_anchor_not_the_final_actor(
+    trained, monkeypatch, capsys
+):
+    """With keep_best_formula the run exports the hall of fame's anchor; export (default) and
+    analyze must rebuild that formula, not the checkpoint's newest actor (which differs here: its
+    constants are scaled)."""
+    assert trained.config.keep_best_formula
+    trainer, state, step = run_lib.load_run(trained.path)
+    assert np.isfinite(np.asarray(state.anchor_return)).all()
+    final = {**state.actor, "mean": jax.tree.map(lambda w: 1.5 * w, state.actor["mean"])}
+    moved = state.replace(actor=final)
+    monkeypatch.setattr(run_lib, "load_run", lambda run_dir: (trainer, moved, step))
+    exported = (trained.path / rundir.EXPRESSION_FILE).read_text().strip()
+    final_text = ex.to_text(
+        ex.export_expressions(trainer, jax.tree.map(lambda v: np.asarray(v[0]), final))
+    )
+    assert final_text != exported  # the test means something
+    assert ex.to_text(analyze.exported_expressions(trained.path)) == exported
+    capsys.readouterr()
+    assert export.main([str(trained.path)]) == 0
+    assert capsys.readouterr().out.strip() == exported
+
+
+@pytest.mark.parametrize("how, within", [("worst", None), ("best", 5), ("shortest-within", None),
+                                         ("stable-within", None)])  # fmt: skip
 def test_pick_refuses_what_export_refuses(trained, how, within):
     with pytest.raises(UserError, match="pick takes"):
         trained.pick(how, within)
@@ -174,6 +248,11 @@ def test_load_refuses_what_is_not_a_run(tmp_path):
         ({"env": "cartpole_fl_ood", "actor": "pearl"}, lambda r: r.adapted(0), "PEARL actor"),
         ({}, lambda r: r.tasks, "single-task run"),
         ({}, lambda r: r.eval, "has not finished"),
+        (
+            {"env": "mountaincar"},
+            lambda r: r.pick("stable-within", 5),
+            "mountaincar has no equilibrium analysis",
+        ),
     ],
 )
 def test_runs_without_what_is_asked_say_so(tmp_path, values, call, message):

@@ -1,14 +1,16 @@
 """ESPL's robustness options: the fine-tune phase trains exactly the exported mask, the anchor
-keeps each seed's best formula, and the hall of fame's pick rules."""
+keeps each seed's best formula, and the hall of fame's pick rules (stable-within included)."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import sympy as sp
 from conftest import TINY
 from flax import struct
 
 from espl_jax import config as config_lib
+from espl_jax import expression as ex
 from espl_jax import halloffame as hof
 from espl_jax import selector
 from espl_jax.config import UserError
@@ -103,6 +105,40 @@ def test_pick_best_and_shortest_within():
     assert hof.pick(rows, "shortest-within", 1.0)["iteration"] == 4
     with pytest.raises(UserError):
         hof.pick([rows[-1]], "best")
+
+
+def test_pick_stable_within_takes_the_shortest_locally_stable_formula():
+    rows = [{**_row(1, 1000.0, 30), "stability": "unstable", "spectral_radius": 1.0002},
+            {**_row(2, 990.0, 20), "stability": "marginal", "spectral_radius": 1.0},
+            {**_row(3, 960.0, 25), "stability": "stable", "spectral_radius": 0.99},
+            {**_row(4, 980.0, 10), "stability": "unstable", "spectral_radius": 1.1},
+            {**_row(5, 900.0, 8), "stability": "stable", "spectral_radius": 0.98}]  # fmt: skip
+    assert hof.pick(rows, "stable-within", 5.0, env="cartpole")["iteration"] == 3
+    assert hof.pick(rows, "stable-within", 10.0, env="cartpole")["iteration"] == 5
+    assert hof.pick(rows, "shortest-within", 5.0)["iteration"] == 4  # unstable, but shortest
+    with pytest.raises(UserError, match=r"no locally stable .* 1 marginal, 1 unstable"):
+        hof.pick(rows, "stable-within", 1.0, env="cartpole")
+    unstable = [r for r in rows if r["stability"] != "stable"]
+    with pytest.raises(UserError, match=r"no formula .* is locally stable \(1 marginal, 2 unst"):
+        hof.pick(unstable, "stable-within", 100.0, env="cartpole")
+    for env in ("mountaincar", "hopper", None):
+        with pytest.raises(UserError, match=f"{env} has no equilibrium analysis"):
+            hof.pick(rows, "stable-within", 5.0, env=env)
+    with pytest.raises(UserError, match=r"stable-within needs a percentage in \[0, 100\]"):
+        hof.pick(rows, "stable-within", 101.0, env="cartpole")
+
+
+def test_pick_stable_within_analyses_rows_written_before_stability_was_recorded():
+    """formulas.jsonl from before the hall of fame recorded stability: the rows within the
+    percentage are analysed when picked (a cart-velocity feedback law is stable, issue 35's
+    formula drifts)."""
+    x = ex.observation_symbols(4)
+    laws = {1: 0.5417 * x[0] + 26.56 * x[2] + 1.837 * x[3] - 0.1759,
+            2: x[0] + 2.0 * x[1] + 20.0 * x[2] + 2.0 * x[3]}  # fmt: skip
+    rows = [{**_row(i, 1000.0, 10 + i), "protected": [sp.srepr(law)]} for i, law in laws.items()]
+    chosen = hof.pick(rows, "stable-within", 1.0, env="cartpole")
+    assert chosen["iteration"] == 2 and chosen["stability"] == "stable"
+    assert chosen["spectral_radius"] < 1 and "stability" not in rows[1]  # rows are not changed
 
 
 def test_bias_l1_is_weight_times_mean_abs_bias_and_pulls_every_bias_to_zero():
