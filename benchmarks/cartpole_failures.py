@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from espl_jax import rollout, run
+from espl_jax.seeds import take
 
 
 def main() -> None:
@@ -27,7 +28,7 @@ def main() -> None:
     env, params, actor = trainer.env, trainer.env.default_params, trainer.actor
     print(f"{args.run_dir}: checkpoint {step}, {args.episodes} episodes per seed")
     for s in range(jax.tree.leaves(state.actor)[0].shape[0]):
-        policy = actor.at(jax.tree.map(lambda x, s=s: x[s], state.actor), jnp.zeros((0,)))
+        policy = actor.at(take(state.actor, s), jnp.zeros((0,)))
         mask = actor.eval_mask(policy)
 
         def episode(key, policy=policy, mask=mask):

@@ -71,7 +71,7 @@ import numpy as np
 import sympy as sp
 
 from espl_jax import config as config_lib
-from espl_jax import envs, evaluation
+from espl_jax import envs, reference_eval
 from espl_jax import expression as ex
 from espl_jax.analyze import exported_expressions
 
@@ -315,7 +315,7 @@ def symbolic_policy(
 
     path = workdir / f"{env_name}_policy.py"
     path.write_text(ex.to_python(exprs, obs_dim, low, high))
-    module = evaluation.load_policy(path)
+    module = reference_eval.load_policy(path)
     obs64 = np.ascontiguousarray(obs, np.float64)
     bytes64 = 8 * (n * (obs_dim + action_dim) + constants)
     impls.append(Impl("numpy", lambda: module.act_batch(obs64), bytes64, "float64"))

@@ -31,7 +31,7 @@ from env_throughput import write_result
 
 from espl_jax import config as config_lib
 from espl_jax import envs
-from espl_jax.trainer import Trainer
+from espl_jax.learner import Trainer
 
 
 def _timed(fn, *args, repeats: int):

@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 import sympy as sp
 
-from espl_jax import evaluation, meta, run, rundir
+from espl_jax import meta_report, reference_eval, run, rundir
+from espl_jax.envs.base import action_center_half_range, to_env_units
 
 
 def zero_offsets(expr: sp.Expr) -> dict[str, sp.Expr]:
@@ -45,12 +46,12 @@ def main() -> None:
     args = parser.parse_args()
     for run_dir in map(Path, args.run_dirs):
         config = run.saved_config(run_dir)
-        tasks = json.loads((run_dir / meta.TASKS_FILE).read_text())["test"]
+        tasks = json.loads((run_dir / meta_report.TASKS_FILE).read_text())["test"]
         means: dict[str, list[float]] = {}
         for i, task in enumerate(tasks):
-            task_dir = run_dir / meta.TEST_TASKS_DIR / str(i)
-            policy = evaluation.load_policy(task_dir / rundir.POLICY_FILE)
-            low, high = policy.ACTION_LOW, policy.ACTION_HIGH
+            task_dir = run_dir / meta_report.TEST_TASKS_DIR / str(i)
+            policy = reference_eval.load_policy(task_dir / rundir.POLICY_FILE)
+            center, half_range = action_center_half_range(policy.ACTION_LOW, policy.ACTION_HIGH)
             xs = sp.symbols(f"x0:{policy.OBS_DIM}")
             lines = (task_dir / rundir.EXPRESSION_FILE).read_text().splitlines()
             exprs = [sp.sympify(line.split("=", 1)[1], {str(x): x for x in xs}) for line in lines]
@@ -58,11 +59,13 @@ def main() -> None:
             for name in variants[0]:
                 fns = [sp.lambdify(xs, v[name], "math") for v in variants]
 
-                def act(obs, fns=fns, low=low, high=high):
+                def act(obs, fns=fns, center=center, half_range=half_range):
                     u = np.tanh([f(*obs) for f in fns])
-                    return low + (u + 1.0) * 0.5 * (high - low)
+                    return to_env_units(u, center, half_range)
 
-                returns = evaluation.rollout_returns(act, config.env, args.episodes, 1000, **task)
+                returns = reference_eval.rollout_returns(
+                    act, config.env, args.episodes, 1000, **task
+                )
                 means.setdefault(name, []).append(float(returns.mean()))
         cells = ", ".join(f"{k} {np.mean(v):.2f}" for k, v in means.items())
         print(f"{run_dir}: mean over {len(tasks)} test tasks × {args.episodes} episodes: {cells}")

@@ -43,7 +43,7 @@ from typing import Any
 import jax
 
 from espl_jax import config, run
-from espl_jax.trainer import Trainer
+from espl_jax.learner import Trainer
 
 
 def build_config(args: argparse.Namespace, seeds: int, meta_batch: int | None) -> config.Config:

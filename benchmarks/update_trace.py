@@ -31,8 +31,8 @@ import yaml
 
 from espl_jax import checkpoint, rundir
 from espl_jax import run as run_lib
+from espl_jax.learner import Trainer
 from espl_jax.sac import SAC
-from espl_jax.trainer import Trainer
 
 
 class TracingSAC(SAC):

@@ -69,7 +69,7 @@ from brax.training.agents.sac import train as brax_sac
 from brax.training.types import Transition
 
 from espl_jax import config, envs
-from espl_jax.trainer import Trainer
+from espl_jax.learner import Trainer
 
 ENV = "inverted_double_pendulum"
 

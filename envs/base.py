@@ -88,10 +88,8 @@ class Environment(abc.ABC):
         """
 
     def scale_action(self, action: jax.Array) -> jax.Array:
-        """Clips a normalized action to [-1, 1] and maps it linearly onto the env's bounds.
-
-        Computed as ``center + a * half_range``, which equals ``low + (a + 1) / 2 * (high - low)``
-        but is exact for symmetric bounds (no rounding through ``a + 1``).
+        """Clips a normalized action to [-1, 1] and maps it linearly onto the env's bounds
+        (``to_env_units`` in float32).
 
         Args:
             action: float (action_dim,), normalized action.
@@ -99,15 +97,36 @@ class Environment(abc.ABC):
         Returns:
             float32 (action_dim,), the action in the env's own units.
         """
-        low = np.asarray(self.action_low, np.float64)
-        high = np.asarray(self.action_high, np.float64)
-        center = jnp.asarray((high + low) / 2.0, jnp.float32)
-        half_range = jnp.asarray((high - low) / 2.0, jnp.float32)
-        action = jnp.clip(jnp.asarray(action, jnp.float32), -1.0, 1.0)
-        return center + action * half_range
+        center, half_range = action_center_half_range(self.action_low, self.action_high)
+        return to_env_units(
+            jnp.asarray(action, jnp.float32),
+            jnp.asarray(center, jnp.float32),
+            jnp.asarray(half_range, jnp.float32),
+            jnp.clip,
+        )
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r}, horizon={self.horizon})"
+
+
+def action_center_half_range(low: Any, high: Any) -> tuple[np.ndarray, np.ndarray]:
+    """float64 ``((high + low) / 2, (high − low) / 2)`` of action bounds, for ``to_env_units``."""
+    low, high = np.asarray(low, np.float64), np.asarray(high, np.float64)
+    return (high + low) / 2.0, (high - low) / 2.0
+
+
+def to_env_units(action, center, half_range, clip=np.clip):
+    """The action scaling: normalized ``action`` in [-1, 1] (clipped) to the env's own units,
+    ``center + a · half_range`` (``action_center_half_range``).
+
+    The one formula of every place an action is scaled: the JAX envs (``scale_action``, float32),
+    the Box2D envs (``to_env_action``, float64 then float32) and the exported ``policy.py``, which
+    carries this function's source verbatim (``espl_jax.expression.to_python``), so the reference
+    env receives what the training env stepped with. It equals ``low + (a + 1) / 2 · (high − low)``
+    but is exact for symmetric bounds (every registered env's): no rounding through ``a + 1``, and
+    a = ±1 gives the bounds themselves.
+    """
+    return center + clip(action, -1.0, 1.0) * half_range
 
 
 def time_limit(t: jax.Array, horizon: int, terminated: jax.Array) -> jax.Array:

@@ -20,6 +20,8 @@ from typing import Any
 
 import numpy as np
 
+from espl_jax.envs.base import action_center_half_range, to_env_units
+
 
 class HostEnv:
     """A gymnasium env stepped on the host: the metadata the trainer and the exporter need.
@@ -94,10 +96,9 @@ class HostEnv:
         Non-finite entries (a diverged actor) become 0 so Box2D is never fed NaN; the trainer
         still stops on the non-finite losses.
         """
-        action = np.clip(np.nan_to_num(np.asarray(action, np.float64)), -1.0, 1.0)
-        center = (self.action_high + self.action_low) / 2.0
-        half_range = (self.action_high - self.action_low) / 2.0
-        return (center + action * half_range).astype(np.float32)
+        center, half_range = action_center_half_range(self.action_low, self.action_high)
+        action = np.nan_to_num(np.asarray(action, np.float64))
+        return to_env_units(action, center, half_range).astype(np.float32)
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r}, id={self.env_id!r})"

@@ -44,6 +44,7 @@ from espl_jax import envs, run, rundir, runlock
 from espl_jax import expression as ex
 from espl_jax.cli import check_path, run_main
 from espl_jax.config import UserError
+from espl_jax.seeds import one_seed
 
 # |λ| within this of 1 is a marginal mode. The Jacobian is computed in float32 (the envs' dtype),
 # whose round-off in J is ~1e-7; 1e-4 is then safely above noise and, at Δt = 0.02 s, separates
@@ -87,7 +88,7 @@ def exported_expressions(run_dir: str | Path, seed: int | None = None) -> list[s
     # The actor the run exported (the hall of fame's anchor with keep_best_formula), not
     # necessarily the newest one: the formula of expression.txt and policy.py.
     actors, _ = run.exported_actors(trainer, state)
-    actor = jax.tree.map(lambda x: np.asarray(x[seed]), actors)
+    actor = one_seed(actors, seed)
     return ex.export_expressions(trainer, actor)
 
 

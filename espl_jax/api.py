@@ -8,7 +8,7 @@ command line's config resolution: defaults < configs/ENV.yaml < ``config`` file 
 Thin by design: every value is read from the run directory's files or computed by the functions
 the command-line tools use (the hall of fame's exact rows, ``halloffame.pick``; ``run.restore``,
 ``run.exported_actors`` and ``ex.export_expressions`` as at the end of training;
-``meta.task_expressions``), so the formula of :meth:`Run.policy` is the one the run's
+``meta_report.task_expressions``), so the formula of :meth:`Run.policy` is the one the run's
 ``policy.py`` evaluates, and :meth:`Run.pick` chooses as ``python -m espl_jax.export --pick``.
 Nothing here writes to the run directory. NOT jittable, except what :meth:`Formula.to_jax` returns.
 """
@@ -36,7 +36,9 @@ from espl_jax import halloffame as hof
 from espl_jax import run as run_lib
 from espl_jax.cli import check_path, use_compilation_cache
 from espl_jax.config import Config, UserError
-from espl_jax.trainer import Trainer, gather
+from espl_jax.envs.base import action_center_half_range, to_env_units
+from espl_jax.learner import Trainer, gather
+from espl_jax.seeds import one_seed
 
 # The hall-of-fame table's columns, in formulas.jsonl's names (``halloffame``'s module docstring):
 # ``stability`` and ``spectral_radius`` are analyze's verdict at the env's equilibrium (None for
@@ -62,7 +64,7 @@ class Formula:
 
     ``expressions`` are exact: the protected operators of training (``PMul``, ``PDiv``, …, §3.1
     and App. A of the paper) with the trained float constants, pre-tanh. The deployed policy is
-    ``low + (tanh(f(obs)) + 1) / 2 · (high − low)``, as in ``policy.py``.
+    ``center + tanh(f(obs)) · half_range`` (``envs.base.to_env_units``), as in ``policy.py``.
 
     Attributes:
         expressions: ``action_dim`` protected sympy expressions in x0 … x{obs_dim−1}.
@@ -114,11 +116,11 @@ class Formula:
         """A jittable, differentiable ``act(obs) -> action`` in the env's units, obs (...,
         obs_dim) -> (..., action_dim); the operators are :mod:`espl_jax.operators`' own."""
         pre_tanh = ex.to_jax(self.expressions)
-        low, high = np.asarray(self.action_low), np.asarray(self.action_high)
+        center, half_range = action_center_half_range(self.action_low, self.action_high)
 
         def act(obs: jax.Array) -> jax.Array:
             u = jnp.tanh(pre_tanh(obs))
-            return low.astype(u.dtype) + (u + 1) * 0.5 * (high - low).astype(u.dtype)
+            return to_env_units(u, center.astype(u.dtype), half_range.astype(u.dtype), jnp.clip)
 
         return act
 
@@ -226,12 +228,14 @@ class Run:
     @property
     def tasks(self) -> dict[str, Any]:
         """Meta-RL runs: tasks.json, each training and test task's params in the env's units."""
-        from espl_jax import meta
+        from espl_jax import meta_report
 
         self._require_meta()
-        path = self.path / meta.TASKS_FILE
+        path = self.path / meta_report.TASKS_FILE
         if not path.is_file():
-            raise UserError(f"{self.path} has no {meta.TASKS_FILE}: its training has not finished")
+            raise UserError(
+                f"{self.path} has no {meta_report.TASKS_FILE}: its training has not finished"
+            )
         return json.loads(path.read_text())
 
     @property
@@ -346,7 +350,7 @@ class Run:
         Raises:
             UserError: not a CSP run, no eval.json, a task index out of range.
         """
-        from espl_jax import meta
+        from espl_jax import meta_report
 
         self._require_meta()
         self._require_formula()
@@ -355,9 +359,9 @@ class Run:
         if not (isinstance(task, int) and 0 <= task < len(tasks)):
             raise UserError(f"task must be a test task of eval.json: 0 … {len(tasks) - 1}")
         best = record["best_seed"]
-        actor = jax.tree.map(lambda x: np.asarray(x[best]), self._state.actor)
+        actor = one_seed(self._state.actor, best)
         entry = tasks[task]
-        exprs = meta.task_expressions(self._trainer, actor, entry["z"])
+        exprs = meta_report.task_expressions(self._trainer, actor, entry["z"])
         return self._formula(exprs, task=task, seed=best, params=entry["params"])
 
     # Internals ----------------------------------------------------------------------------------
@@ -400,7 +404,7 @@ class Run:
     def _from_checkpoint(self, seed: int) -> Formula:
         """``seed``'s exported formula rebuilt from the newest checkpoint (``run.finish``'s way)."""
         actors, sources = run_lib.exported_actors(self._trainer, self._state)
-        actor = jax.tree.map(lambda x: np.asarray(x[seed]), actors)
+        actor = one_seed(actors, seed)
         exprs = ex.export_expressions(self._trainer, actor)
         return self._formula(exprs, seed=seed, exported=sources[seed])
 

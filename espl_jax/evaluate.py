@@ -6,9 +6,10 @@ import argparse
 import sys
 from pathlib import Path
 
-from espl_jax import envs, evaluation, run, rundir, runlock
+from espl_jax import envs, reference_eval, run, rundir, runlock
 from espl_jax.cli import check_path, run_main
 from espl_jax.config import UserError
+from espl_jax.keys import EVALUATE_FIRST_EPISODE
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -20,7 +21,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("run_dir", help="a run directory written by espl_jax.train")
     p.add_argument("--episodes", type=int, default=1000, help="episodes (default: 1000)")
-    p.add_argument("--seed", type=int, default=10_000, help="first episode seed")
+    p.add_argument("--seed", type=int, default=EVALUATE_FIRST_EPISODE, help="first episode seed")
     args = p.parse_args(argv)
     if args.episodes <= 0:
         raise UserError("--episodes must be positive")
@@ -34,17 +35,17 @@ def main(argv: list[str] | None = None) -> int:
             f"{config.env} is a meta-RL task family: its run was evaluated by PEARL's protocol "
             "(eval.json), and each test task's adapted policy.py is in test_tasks/<i>/"
         )
-    if not evaluation.has_reference(config.env):
+    if not reference_eval.has_reference(config.env):
         raise UserError(
             f"{config.env} has no reference environment to evaluate policy.py in "
-            f"(known: {', '.join(evaluation.REFERENCE_ENVS)}); its eval.json holds the JAX "
+            f"(known: {', '.join(reference_eval.REFERENCE_ENVS)}); its eval.json holds the JAX "
             "evaluation of the same formula"
         )
     with runlock.hold(run_dir):  # eval.json is read here and rewritten below
         record = rundir.read_eval(run_dir) or {}  # first: a corrupt eval.json is never overwritten
-        policy = evaluation.load_policy(run_dir / rundir.POLICY_FILE)
-        returns = evaluation.rollout_returns(policy.act, config.env, args.episodes, args.seed)
-        summary = evaluation.summary(returns)
+        policy = reference_eval.load_policy(run_dir / rundir.POLICY_FILE)
+        returns = reference_eval.rollout_returns(policy.act, config.env, args.episodes, args.seed)
+        summary = rundir.return_summary(returns)
         record["reference_eval"] = {**summary, "first_seed": args.seed}
         rundir.write_json(run_dir / rundir.EVAL_FILE, record)
     print(

@@ -16,7 +16,6 @@ import argparse
 import sys
 from pathlib import Path
 
-import jax
 import numpy as np
 
 from espl_jax import expression as ex
@@ -24,6 +23,7 @@ from espl_jax import halloffame as hof
 from espl_jax import run, rundir
 from espl_jax.cli import check_path, run_main
 from espl_jax.config import Config, UserError
+from espl_jax.seeds import one_seed
 
 FORMATS = ("text", "latex", "python", "c")
 PICK_DIR = "picked"
@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     # The actor the run exported (the hall of fame's anchor with keep_best_formula), not
     # necessarily the newest one: the formula of expression.txt and policy.py.
     actors, _ = run.exported_actors(trainer, state)
-    actor = jax.tree.map(lambda x: np.asarray(x[seed]), actors)
+    actor = one_seed(actors, seed)
     if trainer.meta:
         tasks = (record or {}).get("test", {}).get("per_task", [])
         if not 0 <= args.task < len(tasks):

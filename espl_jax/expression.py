@@ -19,6 +19,7 @@ Constant subtrees (paths whose inputs are all pruned) fold to numbers as the exp
 
 from __future__ import annotations
 
+import inspect
 import math
 import operator
 import re
@@ -33,11 +34,12 @@ import sympy as sp
 from sympy.functions.elementary.trigonometric import TrigonometricFunction
 
 from espl_jax import operators as ops
+from espl_jax.envs.base import action_center_half_range, to_env_units
 from espl_jax.selector import EXPORT_WEIGHT_THRESHOLD
 from espl_jax.symbolic import SymbolicNetwork
 
 if TYPE_CHECKING:
-    from espl_jax.trainer import Trainer
+    from espl_jax.learner import Trainer
 
 # Readable expressions longer than this are not passed to sympy.simplify, whose cost grows
 # steeply with size (measured on 2 cores: length 5 in 0.4 s, length 116 in ~20 s); they are still
@@ -462,7 +464,7 @@ _PY_TEMPLATE = '''"""Symbolic policy exported by espl-jax. Needs only Python's m
 {formula}
 
 act(obs) evaluates these formulas with the protected operators used in training, squashes with tanh
-and scales to the action bounds [{low}, {high}].
+and scales to the action bounds [{low}, {high}] as the training env does (to_env_units).
 act_batch(obs) does the same for a batch of observations [N, {obs_dim}], vectorised with numpy.
 """
 
@@ -473,6 +475,12 @@ import numpy as np
 OBS_DIM = {obs_dim}
 ACTION_LOW = np.array({low}, dtype=np.float64)
 ACTION_HIGH = np.array({high}, dtype=np.float64)
+ACTION_CENTER = (ACTION_HIGH + ACTION_LOW) / 2.0
+ACTION_HALF_RANGE = (ACTION_HIGH - ACTION_LOW) / 2.0
+
+
+# The action scaling of the environments the policy was trained in (espl_jax.envs.base), verbatim.
+{to_env_units}
 
 
 def _mul(a, b):
@@ -506,7 +514,7 @@ def pre_tanh(obs):
 def act(obs):
     """Action in the environment's own units for one observation of shape ({obs_dim},)."""
     u = np.tanh(np.asarray(pre_tanh(obs), dtype=np.float64))
-    return ACTION_LOW + (u + 1.0) * 0.5 * (ACTION_HIGH - ACTION_LOW)
+    return to_env_units(u, ACTION_CENTER, ACTION_HALF_RANGE)
 
 
 # Batched versions of the protected operators: the same values as above, elementwise. The masked
@@ -551,7 +559,7 @@ def pre_tanh_batch(obs):
 def act_batch(obs):
     """act for a batch: obs [N, {obs_dim}] -> actions [N, {action_dim}] in the env's own units."""
     u = np.tanh(pre_tanh_batch(obs))
-    return ACTION_LOW + (u + 1.0) * 0.5 * (ACTION_HIGH - ACTION_LOW)
+    return to_env_units(u, ACTION_CENTER, ACTION_HALF_RANGE)
 '''
 
 
@@ -579,6 +587,7 @@ def to_python(
         formula=to_text(exprs),
         low=[float(v) for v in action_low],
         high=[float(v) for v in action_high],
+        to_env_units=inspect.getsource(to_env_units).rstrip(),
         obs_dim=obs_dim,
         action_dim=len(exprs),
         unpack=unpack,
@@ -593,14 +602,16 @@ def to_python(
 _C_TEMPLATE = """/* Symbolic policy exported by espl-jax.
 {formula}
  * act(obs, action) evaluates the formulas with the protected operators used in training, squashes
- * with tanh and scales to the action bounds. Compile with: cc -O2 -c policy.c (link with -lm). */
+ * with tanh and scales to the action bounds low ({low}), high ({high}) as the training env does
+ * (center + clip(u, -1, 1) * half_range, espl_jax.envs.base.to_env_units).
+ * Compile with: cc -O2 -c policy.c (link with -lm). */
 #include <math.h>
 
 #define OBS_DIM {obs_dim}
 #define ACTION_DIM {action_dim}
 
-static const double ACTION_LOW[ACTION_DIM] = {{{low}}};
-static const double ACTION_HIGH[ACTION_DIM] = {{{high}}};
+static const double ACTION_CENTER[ACTION_DIM] = {{{center}}};
+static const double ACTION_HALF_RANGE[ACTION_DIM] = {{{half_range}}};
 
 static double clampd(double x, double lo, double hi) {{ return x < lo ? lo : (x > hi ? hi : x); }}
 static double p_mul(double a, double b) {{
@@ -619,7 +630,7 @@ void act(const double *obs, double *action) {{
 {body}
     double u[ACTION_DIM] = {{{results}}};
     for (int i = 0; i < ACTION_DIM; ++i)
-        action[i] = ACTION_LOW[i] + (tanh(u[i]) + 1.0) * 0.5 * (ACTION_HIGH[i] - ACTION_LOW[i]);
+        action[i] = ACTION_CENTER[i] + clampd(tanh(u[i]), -1.0, 1.0) * ACTION_HALF_RANGE[i];
 }}
 
 /* act for n robots: obs [n][OBS_DIM] in, actions [n][ACTION_DIM] out, both row-major. */
@@ -642,6 +653,7 @@ def to_c(
     observations [n][obs_dim] into [n][action_dim].
     """
     replacements, reduced = _cse(exprs)
+    center, half_range = action_center_half_range(action_low, action_high)
     c = {"calls": _C_CALLS, "number": "{:.17g}", "power": "pow({}, {:g})"}
     unpack = "\n".join(f"    const double x{i} = obs[{i}];" for i in range(obs_dim))
     body = "\n".join(f"    const double {s} = {_code(e, **c)};" for s, e in replacements)
@@ -650,8 +662,10 @@ def to_c(
         formula=formula,
         obs_dim=obs_dim,
         action_dim=len(exprs),
-        low=", ".join(f"{float(v):.17g}" for v in action_low),
-        high=", ".join(f"{float(v):.17g}" for v in action_high),
+        low=", ".join(repr(float(v)) for v in action_low),
+        high=", ".join(repr(float(v)) for v in action_high),
+        center=", ".join(f"{float(v):.17g}" for v in center),
+        half_range=", ".join(f"{float(v):.17g}" for v in half_range),
         unpack=unpack,
         body=body,
         results=", ".join(_code(e, **c) for e in reduced),

@@ -42,6 +42,7 @@ import sympy as sp
 from espl_jax import envs, rundir
 from espl_jax import expression as ex
 from espl_jax.config import UserError
+from espl_jax.seeds import one_seed
 
 FORMULAS_FILE = "formulas.jsonl"
 PLOT_FILE = "hall_of_fame.png"
@@ -267,7 +268,7 @@ def seed_rows(trainer, actors: Any, returns: np.ndarray, **fields: Any) -> list[
     """One row per seed of seed-stacked actor params (numpy), each with its local stability."""
     rows = []
     for s in range(returns.shape[0]):
-        actor = jax.tree.map(lambda x, s=s: np.asarray(x[s]), actors)
+        actor = one_seed(actors, s)
         exprs = ex.export_expressions(trainer, actor)
         rows.append(row(exprs, returns[s], env=trainer.config.env, seed=s, **fields))
     return rows

@@ -32,13 +32,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from espl_jax import replay, rollout
+from espl_jax.keys import HOST_RESET, salted
+from espl_jax.learner import Trainer
 from espl_jax.rollout import Rollout
 from espl_jax.sac import Metrics, TrainState
-from espl_jax.trainer import Trainer
-
-# fold_in salts of the state key for the env seeds of a (re)start (run.py uses 1, 2 and 3 for
-# the evaluation keys).
-RESET_SALT = 4
 
 
 def env_seeds(keys: jax.Array) -> list[int]:
@@ -49,7 +46,7 @@ def env_seeds(keys: jax.Array) -> list[int]:
 
 def reset_seeds(state_keys: jax.Array) -> list[int]:
     """The env seeds a (re)started collector resets its envs with, from the states' keys."""
-    return env_seeds(jax.vmap(jax.random.fold_in, (0, None))(state_keys, RESET_SALT))
+    return env_seeds(salted(state_keys, HOST_RESET))
 
 
 def host_chunk(iteration, state: TrainState, length: int) -> tuple[TrainState, Metrics]:

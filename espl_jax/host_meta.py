@@ -27,14 +27,12 @@ import numpy as np
 
 from espl_jax import pearl, replay, rollout
 from espl_jax.host import env_seeds, host_chunk
+from espl_jax.keys import HOST_WARMUP, salted
+from espl_jax.learner import Trainer
 from espl_jax.replay import Transition
 from espl_jax.rollout import Adapted
 from espl_jax.sac import Metrics, TrainState
-from espl_jax.trainer import Trainer
-
-
-def _index(tree, i):
-    return jax.tree.map(lambda x: x[i], tree)
+from espl_jax.seeds import take
 
 
 class HostMetaCollector:
@@ -64,7 +62,7 @@ class HostMetaCollector:
             """One seed's lanes [R]: the exploring action of each lane's current trajectory."""
 
             def lane(part_d, mask_d, e, o, ep, k):
-                part, mask = _index((part_d, mask_d), e % n)
+                part, mask = take((part_d, mask_d), e % n)
                 policy = actor.policy(actor_params, part)
                 return rollout.explore(actor, cfg.exploration_correlation, policy, mask, o, ep, k)
 
@@ -173,7 +171,7 @@ class HostMetaCollector:
         cfg, t = self.cfg, self.trainer.num_train_tasks
         if not cfg.initial_steps:
             return state
-        keys = jax.vmap(jax.random.fold_in, (0, None))(state.key, 5)
+        keys = salted(state.key, HOST_WARMUP)
         tasks = np.tile(np.arange(t), (cfg.seeds, 1))
         transitions, done, _ = self.phase(state, tasks, keys, cfg.initial_steps, False)
         state = self._store(state, jnp.asarray(tasks), transitions, True, False)

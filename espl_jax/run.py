@@ -22,13 +22,15 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from espl_jax import checkpoint, evaluation, faults, host, meta, replay, rundir, runlock
+from espl_jax import checkpoint, faults, host, meta_report, reference_eval, replay, rundir, runlock
 from espl_jax import config as config_lib
 from espl_jax import expression as ex
 from espl_jax import halloffame as hof
 from espl_jax.config import Config, UserError
+from espl_jax.keys import PROGRESS_EVAL, REFERENCE_FIRST_EPISODE, REPORT, SELECTION, salted
+from espl_jax.learner import Trainer, gather
 from espl_jax.sac import TrainState
-from espl_jax.trainer import Trainer, gather
+from espl_jax.seeds import one_seed
 
 # Metrics whose non-finite value means the run has diverged.
 LOSS_KEYS = ("critic_loss", "actor_loss", "penalty", "q")
@@ -184,7 +186,7 @@ def _train(
                 # Keep the failing chunk's rows, so the user can see what diverged and how.
                 rundir.append_metrics(out / rundir.METRICS_FILE, metrics, None)
                 raise TrainingDiverged(diverged + "; " + _kept(run_dir, mngr.latest_step()))
-            eval_keys = jax.vmap(jax.random.fold_in, (0, None))(new_state.key, 1)
+            eval_keys = salted(new_state.key, PROGRESS_EVAL)
             eval_returns = gather(progress_eval(new_state, eval_keys))
             rundir.append_metrics(out / rundir.METRICS_FILE, metrics, eval_returns)
             state = new_state
@@ -294,7 +296,7 @@ def progress_evaluator(trainer: Trainer):
     single task, ``progress_eval_episodes`` episodes of the exported formula; meta-RL, PEARL's
     protocol on every test task (the last trajectory's return, averaged over runs)."""
     if trainer.meta:
-        adapt = meta.adapter(trainer, trainer.tasks[1])
+        adapt = meta_report.adapter(trainer, trainer.tasks[1])
         return lambda state, keys: gather(adapt(state, keys).final_return).mean(axis=-1)
     evaluate = evaluator(trainer, trainer.config.progress_eval_episodes)
     return lambda state, keys: gather(evaluate(state.actor, keys))
@@ -339,26 +341,26 @@ def finish(
     # evaluations below take numpy input and shard it over the devices again.
     state = gather(state.replace(buffer=None, encoder_buffer=None))
     if trainer.meta:
-        return meta.finish(trainer, state, run_dir, train_seconds, list(warnings or []))
+        return meta_report.finish(trainer, state, run_dir, train_seconds, list(warnings or []))
     cfg, env = trainer.config, trainer.env
     warnings = list(warnings or [])
     evaluate = evaluator(trainer, cfg.eval_episodes)
     actors, source = exported_actors(trainer, state)
     # Select on one set of episodes, report on a fresh one, so the reported figure is unbiased.
     # A single seed needs no selection (for MJX envs it would double the final evaluation).
-    report_keys = jax.vmap(jax.random.fold_in, (0, None))(state.key, 3)
+    report_keys = salted(state.key, REPORT)
     report = gather(evaluate(actors, report_keys))
     best = 0
     if cfg.seeds > 1:
-        select_keys = jax.vmap(jax.random.fold_in, (0, None))(state.key, 2)
+        select_keys = salted(state.key, SELECTION)
         selection = gather(evaluate(actors, select_keys))
         best = int(np.argmax(selection.mean(axis=1)))
 
     per_seed = []
     formulas = {}
     for s in range(cfg.seeds):
-        actor = jax.tree.map(lambda x, s=s: np.asarray(x[s]), actors)
-        entry = {"seed": s, "jax_eval": evaluation.summary(report[s]), "exported": source[s]}
+        actor = one_seed(actors, s)
+        entry = {"seed": s, "jax_eval": rundir.return_summary(report[s]), "exported": source[s]}
         if source[s] == "best":
             entry["exported_iteration"] = int(state.anchor_iteration[s])
         if trainer.actor.symbolic is not None:
@@ -387,9 +389,11 @@ def finish(
     if best in formulas and cfg.reference_eval_episodes:
 
         def reference() -> None:
-            policy = evaluation.load_policy(run_dir / rundir.POLICY_FILE)
-            returns = evaluation.rollout_returns(policy.act, cfg.env, cfg.reference_eval_episodes)
-            result["reference_eval"] = evaluation.summary(returns)
+            policy = reference_eval.load_policy(run_dir / rundir.POLICY_FILE)
+            returns = reference_eval.rollout_returns(
+                policy.act, cfg.env, cfg.reference_eval_episodes, REFERENCE_FIRST_EPISODE
+            )
+            result["reference_eval"] = rundir.return_summary(returns)
 
         rundir.warn_on_failure(warnings, "reference evaluation of policy.py", reference)
         rundir.write_eval(run_dir, result, warnings)

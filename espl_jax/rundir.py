@@ -27,8 +27,8 @@ import numpy as np
 from espl_jax.config import UserError
 
 if TYPE_CHECKING:
+    from espl_jax.learner import Trainer
     from espl_jax.sac import TrainState
-    from espl_jax.trainer import Trainer
 
 CHECKPOINT_DIR = "checkpoints"
 METRICS_FILE = "metrics.jsonl"
@@ -73,6 +73,17 @@ def read_eval(run_dir: str | Path) -> dict[str, Any] | None:
     if not isinstance(record, dict):
         raise UserError(f"{path} is unreadable (not a JSON object)")
     return record
+
+
+def return_summary(returns: np.ndarray) -> dict[str, float | int]:
+    """eval.json's record of a set of episode returns (``jax_eval``, ``reference_eval``)."""
+    return {
+        "mean": float(np.mean(returns)),
+        "std": float(np.std(returns)),
+        "min": float(np.min(returns)),
+        "max": float(np.max(returns)),
+        "episodes": int(len(returns)),
+    }
 
 
 def result_header(

@@ -18,7 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from conftest import TINY_MLP  # noqa: E402
 
 from espl_jax import config as config_lib  # noqa: E402
-from espl_jax.trainer import Trainer  # noqa: E402
+from espl_jax.learner import Trainer  # noqa: E402
 
 tiny = {**TINY_MLP, "seeds": 2, "iterations": 1, "chunk_iterations": 1, "updates_per_iteration": 2}
 

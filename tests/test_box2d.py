@@ -19,9 +19,9 @@ import yaml
 from conftest import TINY, TINY_MLP
 
 from espl_jax import config as config_lib
-from espl_jax import envs, evaluation, host, run, rundir
+from espl_jax import envs, host, reference_eval, run, rundir
 from espl_jax.envs.reference import reference_env
-from espl_jax.trainer import Trainer
+from espl_jax.learner import Trainer
 
 pytestmark = pytest.mark.usefixtures("jax_cache")
 GYMNASIUM = {
@@ -301,11 +301,11 @@ def test_policy_py_is_the_network_and_runs_in_gymnasium(full_run):
         np.asarray(jax.vmap(actor.deterministic, (None, None, 0))(
             params, actor.eval_mask(params), obs))
     )  # fmt: skip
-    policy = evaluation.load_policy(run_dir / rundir.POLICY_FILE)
+    policy = reference_eval.load_policy(run_dir / rundir.POLICY_FILE)
     got = np.array([policy.act(o) for o in obs])
     assert got.shape == (len(obs), 2)
     np.testing.assert_allclose(got, expected, atol=1e-4)
-    returns = evaluation.rollout_returns(policy.act, "lunarlander", 2, seed=123)
+    returns = reference_eval.rollout_returns(policy.act, "lunarlander", 2, seed=123)
     assert returns.shape == (2,) and np.all(np.isfinite(returns))
 
 
@@ -349,11 +349,11 @@ def _paper_bipedalwalker(obs):
     [("lunarlander", _paper_lunarlander, 283.56), ("bipedalwalker", _paper_bipedalwalker, 309.43)],
 )
 def test_paper_formulas_score_the_papers_returns(name, formula, paper):
-    """The paper's Table 3 formulas, played by ``evaluation.rollout_returns`` (the reference-env
+    """The paper's Table 3 formulas, played by ``reference_eval.rollout_returns`` (the reference-env
     path that reports every Box2D figure), score what its Table 2 reports: the env, its
     observation order and the action convention are the paper's.
 
     Observed over env seeds 0..9: lunarlander 282.05, bipedalwalker 309.99.
     """
-    returns = evaluation.rollout_returns(formula, name, episodes=10)
+    returns = reference_eval.rollout_returns(formula, name, episodes=10)
     assert abs(returns.mean() - paper) < 10.0, returns

@@ -10,10 +10,10 @@ from conftest import TINY_MLP
 
 from espl_jax import config as config_lib
 from espl_jax import replay
+from espl_jax.learner import Trainer
 from espl_jax.networks import BatchRenorm, TwinQ
 from espl_jax.policies import MLPActor
 from espl_jax.sac import SAC, TrainState
-from espl_jax.trainer import Trainer
 
 
 def _renorm_reference(x, mean, var, steps, momentum, warmup, eps=1e-3, r_max=3.0, d_max=5.0):

@@ -259,7 +259,7 @@ def test_native_run_killed_mid_chunk_resumes_bit_for_bit(tmp_path, jax_cache):
 def test_physics_is_chosen_per_platform_and_refused_where_it_does_not_apply():
     from espl_jax import config as config_lib
     from espl_jax.config import UserError
-    from espl_jax.trainer import Trainer
+    from espl_jax.learner import Trainer
 
     assert jax.default_backend() == "cpu"
     auto = Trainer(config_lib.resolve("hopper_params"))

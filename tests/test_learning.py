@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from espl_jax import config, evaluation, run, rundir
+from espl_jax import config, reference_eval, run, rundir
 
 
 @pytest.mark.slow
@@ -24,7 +24,7 @@ def test_cartpole_learns_a_formula_on_a_small_budget(tmp_path):
     assert result["jax_eval"]["mean"] >= 150, result
     assert result["length"] <= 60
     # The written policy.py, run in the numpy reference CartPole, agrees with the JAX evaluation.
-    policy = evaluation.load_policy(tmp_path / rundir.POLICY_FILE)
-    returns = evaluation.rollout_returns(policy.act, "cartpole", 20)
+    policy = reference_eval.load_policy(tmp_path / rundir.POLICY_FILE)
+    returns = reference_eval.rollout_returns(policy.act, "cartpole", 20)
     assert returns.mean() >= 150
     assert json.loads((tmp_path / rundir.EVAL_FILE).read_text())["reference_eval"]["mean"] >= 150

@@ -16,12 +16,12 @@ from conftest import TINY
 from flax import struct
 
 from espl_jax import config as config_lib
-from espl_jax import evaluation, pearl, rollout
 from espl_jax import expression as ex
+from espl_jax import pearl, reference_eval, rollout
 from espl_jax.envs.base import Environment
+from espl_jax.learner import Trainer
 from espl_jax.policies import Actor, GeneratedSymbolic
 from espl_jax.replay import Transition
-from espl_jax.trainer import Trainer
 
 DATA = Path(__file__).resolve().parent / "data"
 
@@ -222,7 +222,7 @@ def test_csp_export_equals_the_generated_network_at_z(tmp_path):
     source = ex.to_python(exprs, 4, np.array([-1.0]), np.array([1.0]))
     path = tmp_path / "policy.py"
     path.write_text(source)
-    module = evaluation.load_policy(path)
+    module = reference_eval.load_policy(path)
     obs = rng.normal(scale=0.3, size=(32, 4)).astype(np.float32)
     network = jax.vmap(actor.deterministic, (None, None, 0))(policy, mask, obs)
     got = np.array([module.act(o) for o in obs])

@@ -32,7 +32,7 @@ import numpy as np
 import pytest
 
 from espl_jax import config as config_lib
-from espl_jax import faults, meta, run, rundir, runlock
+from espl_jax import faults, meta_report, run, rundir, runlock
 
 REPO = Path(__file__).resolve().parent.parent
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("jax_cache")]
@@ -77,9 +77,11 @@ def assert_killed_at(point: str, run_dir: Path) -> None:
     the protocol, and the metrics rows of a chunk whose checkpoint was not committed."""
     done = {r["iteration"] for r in rundir.read_metrics(run_dir / rundir.METRICS_FILE)}
     assert done == {"warmup": set(), "chunk:2": {1}}.get(point, {1, 2, 3}), (point, done)
-    assert (run_dir / meta.TASKS_FILE).is_file() == (point in ("protocol", "test-task-export"))
+    assert (run_dir / meta_report.TASKS_FILE).is_file() == (
+        point in ("protocol", "test-task-export")
+    )
     assert not (run_dir / rundir.EVAL_FILE).exists()
-    exported = sorted(p.name for p in (run_dir / meta.TEST_TASKS_DIR).glob("*"))
+    exported = sorted(p.name for p in (run_dir / meta_report.TEST_TASKS_DIR).glob("*"))
     assert exported == (["0"] if point == "test-task-export" else [])
     assert (run_dir / runlock.LOCK_FILE).read_text().startswith("pid ")  # the dead holder's
 
@@ -107,9 +109,15 @@ def assert_same_finished_run(a: Path, b: Path) -> None:
     for record in records:
         del record["training"]["wall_seconds_training"]
     assert records[0] == records[1]
-    for pattern in (meta.TASKS_FILE, f"{meta.TEST_TASKS_DIR}/*/*", "coefficients.json"):
+    for pattern in (
+        meta_report.TASKS_FILE,
+        f"{meta_report.TEST_TASKS_DIR}/*/*",
+        "coefficients.json",
+    ):
         assert files(a, pattern) == files(b, pattern), pattern
-    assert len(files(b, f"{meta.TEST_TASKS_DIR}/*/*")) == 2 * len(records[0]["test"]["per_task"])
+    assert len(files(b, f"{meta_report.TEST_TASKS_DIR}/*/*")) == 2 * len(
+        records[0]["test"]["per_task"]
+    )
 
 
 @pytest.mark.parametrize("env", ["cartpole_fl_ood", "lunarlander_params"])

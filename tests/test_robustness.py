@@ -14,7 +14,7 @@ from espl_jax import expression as ex
 from espl_jax import halloffame as hof
 from espl_jax import selector
 from espl_jax.config import UserError
-from espl_jax.trainer import Trainer
+from espl_jax.learner import Trainer
 
 
 @pytest.mark.usefixtures("jax_cache")

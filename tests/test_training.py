@@ -26,7 +26,7 @@ import pytest
 import yaml
 from conftest import TINY, TINY_MLP, committed_checkpoints
 
-from espl_jax import checkpoint, envs, evaluation, faults, replay, rollout, run, rundir
+from espl_jax import checkpoint, envs, faults, reference_eval, replay, rollout, run, rundir
 from espl_jax import config as config_lib
 from espl_jax.policies import MLPActor, tanh_gaussian_log_prob
 from espl_jax.sac import SAC, TrainState
@@ -154,7 +154,7 @@ def test_policy_py_is_the_network_under_the_eval_mask(full_run):
         env.action_high - env.action_low
     )
 
-    policy = evaluation.load_policy(run_dir / rundir.POLICY_FILE)
+    policy = reference_eval.load_policy(run_dir / rundir.POLICY_FILE)
     got = np.array([policy.act(o) for o in obs])
     assert got.shape == (16, 1)
     assert np.all(got >= env.action_low) and np.all(got <= env.action_high)
@@ -382,7 +382,7 @@ def test_failing_reference_evaluation_is_a_warning_and_loses_nothing(
     def broken(*args, **kwargs):
         raise ModuleNotFoundError("No module named 'imageio'")
 
-    monkeypatch.setattr(evaluation, "rollout_returns", broken)
+    monkeypatch.setattr(reference_eval, "rollout_returns", broken)
     result = run.train(tiny(), run_dir, resume=True, show_progress=False)
     assert "reference_eval" not in result
     assert result["warnings"] == [
@@ -595,7 +595,7 @@ def test_eval_json_names_the_seed_that_trains_the_chosen_one_alone(capsys):
     from types import SimpleNamespace
 
     from espl_jax import train
-    from espl_jax.trainer import Trainer
+    from espl_jax.learner import Trainer
 
     trainer = Trainer(config_lib.resolve("cartpole", seed=3, seeds=2))
     ones = np.ones(2, np.int32)

@@ -1,4 +1,5 @@
-"""Host-side evaluation of an exported ``policy.py`` in the reference (gymnasium) environment."""
+"""Host-side evaluation of an exported ``policy.py`` in the reference (gymnasium) environment:
+eval.json's ``reference_eval`` (the command line is ``python -m espl_jax.evaluate``)."""
 
 from __future__ import annotations
 
@@ -58,13 +59,3 @@ def rollout_returns(
             done = terminated or truncated
     env.close()
     return returns
-
-
-def summary(returns: np.ndarray) -> dict[str, float | int]:
-    return {
-        "mean": float(np.mean(returns)),
-        "std": float(np.std(returns)),
-        "min": float(np.min(returns)),
-        "max": float(np.max(returns)),
-        "episodes": int(len(returns)),
-    }

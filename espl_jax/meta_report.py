@@ -1,6 +1,6 @@
-"""The end of a meta-RL run (CSP, PEARL, Hyper): evaluation by PEARL's protocol and the adapted
-formulas. NOT jittable: host I/O, export and plotting; the protocol itself runs in JAX
-(``Trainer.adapt``). Written into the run directory beside what every run has:
+"""The end-of-run report of a meta-RL run (CSP, PEARL, Hyper): evaluation by PEARL's protocol
+and the adapted formulas. NOT jittable: host I/O, export and plotting; the protocol itself runs in
+JAX (``Trainer.adapt``). Written into the run directory beside what every run has:
 
     tasks.json               {"seed", "train": [...], "test": [...]}: each task's params in the
                              env's own units (``TaskFamily.describe``)
@@ -24,11 +24,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from espl_jax import evaluation, faults, rollout, rundir
 from espl_jax import expression as ex
+from espl_jax import faults, reference_eval, rollout, rundir
+from espl_jax.keys import (
+    COEFFICIENTS_OFFSET,
+    FRESH_EPISODES_OFFSET,
+    REFERENCE_FIRST_EPISODE,
+    REPORT,
+    SELECTION,
+    offset_key,
+    salted,
+)
+from espl_jax.learner import Trainer, gather
 from espl_jax.sac import TrainState
+from espl_jax.seeds import one_seed
 from espl_jax.symbolic import live_paths
-from espl_jax.trainer import Trainer, gather
 
 TASKS_FILE = "tasks.json"
 TEST_TASKS_DIR = "test_tasks"
@@ -60,10 +70,6 @@ def write_tasks(trainer: Trainer, run_dir: Path) -> None:
     rundir.write_json(run_dir / TASKS_FILE, record)
 
 
-def _seed(tree: Any, s: int) -> Any:
-    return jax.tree.map(lambda x: x[s], tree)
-
-
 def finish(
     trainer: Trainer,
     state: TrainState,
@@ -75,13 +81,12 @@ def finish(
     train_params, test_params = trainer.tasks
     write_tasks(trainer, run_dir)
 
-    keys = jax.vmap(jax.random.fold_in, (0, None))
-    test = gather(adapter(trainer, test_params)(state, keys(state.key, 3)))
+    test = gather(adapter(trainer, test_params)(state, salted(state.key, REPORT)))
     faults.kill_point("protocol")  # between the test tasks' protocol and the training tasks'
     # PEARL also evaluates on as many training tasks as there are test tasks.
     n = min(family.n_test, family.n_train)
     subset = jax.tree.map(lambda x: x[:n], train_params)
-    train = gather(adapter(trainer, subset)(state, keys(state.key, 2)))
+    train = gather(adapter(trainer, subset)(state, salted(state.key, SELECTION)))
     test_returns = np.asarray(test.final_return)  # [S, tasks, runs]
     train_returns = np.asarray(train.final_return)
     best = int(np.argmax(train_returns.mean(axis=(1, 2)))) if cfg.seeds > 1 else 0
@@ -144,7 +149,7 @@ def _export_test_tasks(
     """test_tasks/<i>/{expression.txt, policy.py}: the formula the protocol adapted to task i.
     Returns the policy.py paths."""
     env, network = trainer.env, trainer.actor.symbolic
-    actor = jax.tree.map(np.asarray, _seed(state.actor, best))
+    actor = one_seed(state.actor, best)
     lengths, paths, files = [], [], []
     for entry in result["test"]["per_task"]:
         policy = trainer.task_policy(actor, np.asarray(entry["z"]))
@@ -182,7 +187,7 @@ def _fresh_episodes(
     if trainer.on_host:  # a gymnasium family: its policy.py files in gymnasium, per task
         _fresh_policy_py(trainer, result, policy_files, warnings)
         return
-    params = _seed(state.actor, best)
+    params = one_seed(state.actor, best)
     zs = jnp.asarray([entry["z"] for entry in result["test"]["per_task"]])
 
     def one(z, task, key):
@@ -190,12 +195,12 @@ def _fresh_episodes(
         mask = actor.eval_mask(policy)
         return rollout.evaluate(env, actor, policy, mask, task, key, FRESH_EPISODES)
 
-    keys = jax.random.split(jax.random.PRNGKey(trainer.config.seed + 10_000), zs.shape[0])
+    keys = jax.random.split(offset_key(trainer.config.seed, FRESH_EPISODES_OFFSET), zs.shape[0])
     fresh = np.asarray(jax.jit(jax.vmap(one))(zs, trainer.tasks[1], keys))
     for entry, returns in zip(result["test"]["per_task"], fresh, strict=True):
         entry["fresh_return"] = float(returns.mean())
     result["test"]["fresh_mean"] = float(fresh.mean())
-    if evaluation.has_reference(trainer.config.env):
+    if reference_eval.has_reference(trainer.config.env):
         _fresh_policy_py(trainer, result, policy_files, warnings)
 
 
@@ -213,9 +218,9 @@ def _fresh_policy_py(
             zip(result["test"]["per_task"], policy_files, strict=True)
         ):
             kwargs = family.host_kwargs(test_params, i) if trainer.on_host else entry["params"]
-            policy = evaluation.load_policy(path)
-            returns = evaluation.rollout_returns(
-                policy.act, trainer.config.env, FRESH_EPISODES, 0, **kwargs
+            policy = reference_eval.load_policy(path)
+            returns = reference_eval.rollout_returns(
+                policy.act, trainer.config.env, FRESH_EPISODES, REFERENCE_FIRST_EPISODE, **kwargs
             )
             entry["policy_py_return"] = float(returns.mean())
             returns_all.append(returns.mean())
@@ -239,9 +244,9 @@ def coefficient_figure(trainer: Trainer, state: TrainState, best: int, run_dir: 
     default = trainer.env.default_params
     tasks = jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x), grid_f.shape), default)
     tasks = tasks.replace(force_mag=jnp.asarray(grid_f), length=jnp.asarray(grid_l))
-    single = _seed(state, best)
+    single = one_seed(state, best)
     adapted = jax.jit(lambda s, p, k: trainer.adapt(s, p, k))(
-        single, tasks, jax.random.PRNGKey(trainer.config.seed + 20_000)
+        single, tasks, offset_key(trainer.config.seed, COEFFICIENTS_OFFSET)
     )
     actor = trainer.actor
 

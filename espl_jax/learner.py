@@ -1,4 +1,7 @@
-"""One trainer for ESPL (Algorithm 1) and CSP, PEARL and Hyper (Algorithm 2).
+"""The learner: one ``Trainer`` for ESPL (Algorithm 1) and CSP, PEARL and Hyper (Algorithm 2).
+
+The library side of training (``python -m espl_jax.train`` is the command line, ``espl_jax.run``
+the loop that writes a run directory).
 
 A single-task env is the one-task, no-context case: T = 1 task (the env's default params), a
 (0,)-sized latent, no encoder. A meta-RL task family gives T = ``n_train`` training tasks, a
@@ -32,9 +35,11 @@ import numpy as np
 
 from espl_jax import envs, pearl, replay, rollout, selector
 from espl_jax.config import Config, UserError
+from espl_jax.keys import POSTERIOR_DRAW, seed_keys
 from espl_jax.policies import META_ACTORS, SINGLE_TASK_ACTORS, Actor, make_actor
 from espl_jax.rollout import Rollout
 from espl_jax.sac import SAC, Metrics, TrainState, task_keys
+from espl_jax.seeds import take
 
 
 def resolve_physics(physics: str) -> str:
@@ -252,8 +257,7 @@ class Trainer:
     def seed_keys(self) -> jax.Array:
         """[S, 2]: seed i of a ``--seeds S --seed K`` run is ``PRNGKey(K + i)``, the key of a
         one-seed ``--seed K+i`` run, so a sweep's seeds are the single runs' seeds."""
-        seeds = self.config.seed + np.arange(self.config.seeds)
-        return jnp.stack([jax.random.PRNGKey(int(s)) for s in seeds])
+        return seed_keys(self.config.seed, self.config.seeds)
 
     def init_seeds(self) -> TrainState:
         """States for ``config.seeds`` seeds stacked on a leading axis (sharded, see ``place``)."""
@@ -387,7 +391,7 @@ class Trainer:
         n = self.DRAWS_PER_PHASE
 
         def draw(i):
-            return jax.tree.map(lambda x: x[i % n], (parts, masks))
+            return take((parts, masks), i % n)
 
         return draw
 
@@ -413,7 +417,7 @@ class Trainer:
 
         def one(p, k_r, k_c, mu_t, var_t):
             r = rollout.reset(env, p, k_r, env.action_dim)
-            draw = self._draw(state.actor, mu_t, var_t, jax.random.fold_in(k_c, 1))
+            draw = self._draw(state.actor, mu_t, var_t, jax.random.fold_in(k_c, POSTERIOR_DRAW))
             part, mask = draw(0)  # the first step draws it again; this fixes the carry's shape
             return self._collect(r, p, state.actor, part, mask, k_c, steps, draw)
 
