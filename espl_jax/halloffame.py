@@ -17,9 +17,9 @@ measured afresh on other episodes (``run.finish``).
 
 ``stability`` and ``spectral_radius`` are ``python -m espl_jax.analyze``'s local-stability verdict
 ("stable", "marginal" or "unstable") and the largest |λ| of the closed loop's per-step Jacobian
-at the env's equilibrium (``analyze.closed_loop``): a formula can score a full episode and still
+at the env's equilibrium (``stability.closed_loop``): a formula can score a full episode and still
 be unstable (a slow mode with |λ| = 1.0002 is invisible in 1000 steps). Both are null for envs
-without an equilibrium (``analyze.EQUILIBRIA``), for formulas not kept, and where the closed-loop
+without an equilibrium (``stability.EQUILIBRIA``), for formulas not kept, and where the closed-loop
 Jacobian is not finite; rows written before they were recorded lack them.
 
 ``pick`` chooses a row for ``python -m espl_jax.export RUN --pick best|shortest-within PCT|
@@ -41,6 +41,7 @@ import sympy as sp
 
 from espl_jax import envs, rundir
 from espl_jax import expression as ex
+from espl_jax import stability as analysis
 from espl_jax.config import UserError
 from espl_jax.seeds import one_seed
 
@@ -96,15 +97,13 @@ def stability(env: str, expressions: list) -> dict[str, Any]:
 
     Returns:
         ``{"stability": "stable" | "marginal" | "unstable", "spectral_radius": max |λ|}`` of
-        ``analyze.closed_loop`` at the env's default params and tolerance; both None for an env
+        ``stability.closed_loop`` at the env's default params and tolerance; both None for an env
         without an equilibrium, or where the closed-loop Jacobian is not finite.
     """
-    from espl_jax import analyze  # analyze reads runs through espl_jax.run, which imports this
-
-    if not analyze.has_equilibrium(env):
+    if not analysis.has_equilibrium(env):
         return dict(NOT_ANALYSED)
     try:
-        result = analyze.closed_loop(_analysis_env(env), expressions)
+        result = analysis.closed_loop(_analysis_env(env), expressions)
     except ValueError:  # a formula whose closed-loop Jacobian is not finite at x*
         return dict(NOT_ANALYSED)
     return {"stability": result["verdict"], "spectral_radius": result["spectral_radius"]}
@@ -118,12 +117,11 @@ def _analysis_env(name: str):
 
 def require_stability(env: str | None) -> None:
     """Raises a UserError unless ``env`` has the equilibrium that ``stable-within`` needs."""
-    from espl_jax import analyze
 
-    if env is None or not analyze.has_equilibrium(env):
+    if env is None or not analysis.has_equilibrium(env):
         raise UserError(
             f"stable-within needs the local-stability analysis, and {env} has no equilibrium "
-            f"analysis (python -m espl_jax.analyze knows {', '.join(analyze.EQUILIBRIA)}); use "
+            f"analysis (python -m espl_jax.analyze knows {', '.join(analysis.EQUILIBRIA)}); use "
             "'best' or 'shortest-within PCT'"
         )
 

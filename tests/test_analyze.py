@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import sympy as sp
 
-from espl_jax import analyze, envs
+from espl_jax import analyze, envs, stability
 from espl_jax import config as config_lib
 from espl_jax import expression as ex
 from espl_jax import halloffame as hof
@@ -37,7 +37,7 @@ def _assert_same_spectrum(got, expected, atol):
 
 def test_paper_cartpole_law_matches_the_papers_eigenvalues():
     """App. "Theoretical Analysis for Cartpole": 0, 0, −26.34 ± 6.65j for force_mag 30, τ 0.02."""
-    result = analyze.closed_loop(envs.make("cartpole"), PAPER_CARTPOLE)
+    result = stability.closed_loop(envs.make("cartpole"), PAPER_CARTPOLE)
     _assert_same_spectrum(_continuous(result), [0, 0, -26.34 + 6.65j, -26.34 - 6.65j], atol=0.01)
     assert result["continuous_time"].startswith("(λ − 1)/Δt: exact")
     assert result["dt"] == pytest.approx(0.02)
@@ -53,7 +53,7 @@ def test_paper_cartpole_law_matches_the_papers_eigenvalues():
 
 def test_unforced_cartpole_is_unstable():
     """a = 0: the paper's ±3.97 (our exact linearisation gives ±3.9719)."""
-    result = analyze.closed_loop(envs.make("cartpole"), [sp.Float(0.0)])
+    result = stability.closed_loop(envs.make("cartpole"), [sp.Float(0.0)])
     _assert_same_spectrum(_continuous(result), [0, 0, 3.97, -3.97], atol=0.01)
     assert result["verdict"] == "unstable"
     unstable = [m for m in result["modes"] if m["kind"] == "unstable"]
@@ -69,7 +69,7 @@ def test_pendulum_semi_implicit_euler_known_answer():
     trace = 2 + 15 * dt**2
     root = np.sqrt(trace**2 - 4)
     expected = [(trace + root) / 2, (trace - root) / 2]
-    result = analyze.closed_loop(env, [sp.Float(0.0)])
+    result = stability.closed_loop(env, [sp.Float(0.0)])
     got = [complex(*m["discrete"]) for m in result["modes"]]
     _assert_same_spectrum(got, expected, atol=1e-5)
     assert result["verdict"] == "unstable"
@@ -78,7 +78,7 @@ def test_pendulum_semi_implicit_euler_known_answer():
     np.testing.assert_allclose(sorted(mu.real), sorted(np.log(expected) / dt), atol=1e-3)
 
     paper = [-ex.PMul(4.27 * X[0] + 0.62, 1.9 * X[1] + 0.42 * X[2])]  # Table 3, Pendulum
-    stable = analyze.closed_loop(env, paper)
+    stable = stability.closed_loop(env, paper)
     assert stable["verdict"] == "stable" and stable["summary"] == "locally stable: every |λ| < 1"
     assert max(m["abs"] for m in stable["modes"]) < 0.9
     assert stable["fixed_point_residual"] == 0.0
@@ -86,7 +86,7 @@ def test_pendulum_semi_implicit_euler_known_answer():
 
 def test_constant_offset_is_reported_as_no_fixed_point():
     env = envs.make("cartpole")
-    result = analyze.closed_loop(env, [PAPER_CARTPOLE[0] + 0.3])
+    result = stability.closed_loop(env, [PAPER_CARTPOLE[0] + 0.3])
     # one Euler step from rest under force 30·tanh(0.3): only the velocities change
     offset = np.array(result["fixed_point_offset"])
     assert offset[0] == 0 and offset[2] == 0 and offset[1] > 0 and offset[3] < 0
@@ -99,22 +99,22 @@ def test_constant_offset_is_reported_as_no_fixed_point():
 
 def test_envs_without_equilibrium_and_wrong_sizes_are_errors():
     with pytest.raises(UserError, match="no equilibrium defined for mountaincar"):
-        analyze.closed_loop(envs.make("mountaincar"), [X[1]])
+        stability.closed_loop(envs.make("mountaincar"), [X[1]])
     with pytest.raises(ValueError, match="1 actions, got 2"):
-        analyze.closed_loop(envs.make("cartpole"), PAPER_CARTPOLE * 2)
+        stability.closed_loop(envs.make("cartpole"), PAPER_CARTPOLE * 2)
 
 
 def test_spectral_radius_verdicts_and_one_compile_per_env():
     """The hall of fame's two numbers (``halloffame.stability``) are closed_loop's, and each
     formula after the first reuses the env's compiled linearisation."""
     env = envs.make("cartpole")
-    drift = analyze.closed_loop(env, SLOW_DRIFT_CARTPOLE)
+    drift = stability.closed_loop(env, SLOW_DRIFT_CARTPOLE)
     assert drift["verdict"] == "unstable"
     assert drift["spectral_radius"] == max(m["abs"] for m in drift["modes"])
     assert drift["spectral_radius"] == pytest.approx(1.000187, abs=2e-6)
-    compiled = analyze._linearisation.cache_info().misses
-    stable = analyze.closed_loop(env, STABLE_CARTPOLE)
-    assert analyze._linearisation.cache_info().misses == compiled  # no new compile
+    compiled = stability._linearisation.cache_info().misses
+    stable = stability.closed_loop(env, STABLE_CARTPOLE)
+    assert stability._linearisation.cache_info().misses == compiled  # no new compile
     assert stable["verdict"] == "stable" and stable["spectral_radius"] < 1 - stable["tolerance"]
     assert hof.stability("cartpole", STABLE_CARTPOLE) == {
         "stability": "stable",
@@ -122,12 +122,12 @@ def test_spectral_radius_verdicts_and_one_compile_per_env():
     }
     assert hof.stability("cartpole", SLOW_DRIFT_CARTPOLE)["stability"] == "unstable"
     assert hof.stability("mountaincar", [X[1]]) == hof.NOT_ANALYSED  # no equilibrium
-    assert "spectral radius max |λ| = 1.000187" in analyze.format_report(drift)
+    assert "spectral radius max |λ| = 1.000187" in stability.format_report(drift)
 
 
 def test_report_names_modes_and_verdict():
-    result = analyze.closed_loop(envs.make("cartpole"), PAPER_CARTPOLE)
-    report = analyze.format_report(result, ex.to_text(PAPER_CARTPOLE))
+    result = stability.closed_loop(envs.make("cartpole"), PAPER_CARTPOLE)
+    report = stability.format_report(result, ex.to_text(PAPER_CARTPOLE))
     assert "a0 = 17.17*x2 + 1.2*x3" in report
     assert "-26.34" in report and "marginal" in report and "verdict: marginal" in report
 
@@ -199,7 +199,7 @@ def test_cli_rejects_a_directory_that_is_not_a_run(tmp_path, capsys):
 def test_unforced_mjx_pendula_are_unstable_and_the_swingup_nudges_past_sqrt_at_zero():
     results = {}
     for name, n in (("inverted_pendulum_swingup", 4), ("inverted_double_pendulum", 6)):
-        result = results[name] = analyze.closed_loop(envs.make(name), [sp.Float(0.0)])
+        result = results[name] = stability.closed_loop(envs.make(name), [sp.Float(0.0)])
         assert len(result["modes"]) == n and result["verdict"] == "unstable"
         assert np.all(np.isfinite(result["jacobian"]))
         unstable = [m for m in result["modes"] if m["kind"] == "unstable"]

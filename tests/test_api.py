@@ -21,7 +21,7 @@ import sympy as sp
 import yaml
 
 import espl_jax
-from espl_jax import analyze, api, envs, export, rundir
+from espl_jax import analyze, api, envs, export, rundir, stability
 from espl_jax import config as config_lib
 from espl_jax import expression as ex
 from espl_jax import halloffame as hof
@@ -154,7 +154,7 @@ def test_hall_of_fame_records_each_formulas_local_stability(trained, tmp_path):
         if r["protected"] is None:
             assert r["stability"] is None and r["spectral_radius"] is None
             continue
-        result = analyze.closed_loop(envs.make("cartpole"), hof.expressions(r))
+        result = stability.closed_loop(envs.make("cartpole"), hof.expressions(r))
         assert r["stability"] == result["verdict"] in ("stable", "marginal", "unstable")
         assert r["spectral_radius"] == pytest.approx(result["spectral_radius"], abs=1e-9)
     table = trained.hall_of_fame
@@ -184,7 +184,7 @@ def test_pick_stable_within_in_the_api_and_the_cli(trained, tmp_path, capsys):
     picked = espl_jax.load(run_dir).pick("stable-within", 5)
     assert picked.info["stability"] == "stable" and picked.info["spectral_radius"] < 1
     assert picked.length <= ex.mean_complexity([law])
-    assert analyze.closed_loop(envs.make("cartpole"), picked.expressions)["verdict"] == "stable"
+    assert stability.closed_loop(envs.make("cartpole"), picked.expressions)["verdict"] == "stable"
     out = tmp_path / "picked"
     assert export.main([str(run_dir), "--pick", "stable-within", "5", "-o", str(out)]) == 0
     assert str(picked) == (out / rundir.EXPRESSION_FILE).read_text().strip()
