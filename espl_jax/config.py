@@ -129,6 +129,10 @@ class Config:
     pearl_hidden: tuple[int, ...] = (300, 300, 300)
     hyper_policy_hidden: int = 256
     kl_weight: float = 0.1  # β: PEARL's and the authors' code (the paper's table says 1)
+    # Floor of each context transition's factor variance σ²_n before the product of Gaussians.
+    # PEARL's 1e-7 is a numerical guard; a factor at the floor outweighs every other, and the
+    # posterior is then that one transition's μ_n (lunarlander_params, docs/notes).
+    posterior_var_floor: float = 1e-7
     meta_batch: int = 10  # tasks per gradient step, sampled with replacement
     context_batch: int = 100  # context transitions per task, from its encoder buffer
     # Collection (PEARL's rl_algorithm): before the first iteration every training task gets
@@ -204,6 +208,7 @@ _POSITIVE_INT = (
 )
 _UNIT_INTERVAL = ("gamma", "polyak", "target_l0_ratio", "target_temperature", "crossq_momentum")
 _POSITIVE_FLOAT = (
+    "posterior_var_floor",
     "learning_rate",
     "actor_learning_rate",
     "probs_learning_rate",

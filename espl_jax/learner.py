@@ -179,7 +179,8 @@ class Trainer:
         if not self.meta:
             return None
         use_next = self.family.use_next_obs_in_context
-        return pearl.Encoder(self.config.encoder_hidden, self.config.latent_dim, use_next)
+        cfg = self.config
+        return pearl.Encoder(cfg.encoder_hidden, cfg.latent_dim, use_next, cfg.posterior_var_floor)
 
     @cached_property
     def sac(self) -> SAC:

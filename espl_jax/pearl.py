@@ -22,7 +22,7 @@ from flax import struct
 from espl_jax.networks import MLP
 from espl_jax.replay import Transition
 
-VAR_FLOOR = 1e-7  # PEARL's clamp of σ²_n before the product
+VAR_FLOOR = 1e-7  # PEARL's clamp of σ²_n before the product (config posterior_var_floor)
 
 
 @struct.dataclass
@@ -63,9 +63,16 @@ def context_features(batch: Transition, use_next_obs: bool) -> jax.Array:
 class Encoder:
     """The context encoder: an MLP (200×3 in the paper) to (μ, pre-softplus σ²) per transition."""
 
-    def __init__(self, hidden: Sequence[int], latent_dim: int, use_next_obs: bool):
+    def __init__(
+        self,
+        hidden: Sequence[int],
+        latent_dim: int,
+        use_next_obs: bool,
+        var_floor: float = VAR_FLOOR,
+    ):
         self.latent_dim = latent_dim
         self.use_next_obs = use_next_obs
+        self.var_floor = var_floor
         self.net = MLP(tuple(hidden), 2 * latent_dim)
 
     def init(self, key: jax.Array, feature_dim: int):
@@ -75,7 +82,7 @@ class Encoder:
         """Per-transition factors (μ_n, σ²_n), each (…, L), of a context (…, transition)."""
         out = self.net.apply(params, context_features(context, self.use_next_obs))
         mu, pre_var = out[..., : self.latent_dim], out[..., self.latent_dim :]
-        return mu, jnp.maximum(jax.nn.softplus(pre_var), VAR_FLOOR)
+        return mu, jnp.maximum(jax.nn.softplus(pre_var), self.var_floor)
 
     def posterior(self, params, context: Transition) -> tuple[jax.Array, jax.Array]:
         """(μ, σ²) of q(z | c) for a context of N transitions (leading axis N)."""
