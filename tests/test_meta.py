@@ -298,3 +298,25 @@ def test_an_mjx_family_first_built_inside_a_trace_holds_no_tracer():
     leaves = jax.tree.leaves(trainer.env._mx)
     assert leaves
     assert not any(isinstance(leaf, jax.core.Tracer) for leaf in leaves)
+
+
+@pytest.mark.slow  # the shipped lunarlander_params runs, 7-25 min each on 2 cores
+@pytest.mark.parametrize(("actor", "seed"), [("symbolic", 2), ("pearl", 0), ("pearl", 1)])
+def test_lunarlander_params_stays_bounded_with_the_shipped_critics(actor, seed, tmp_path):
+    """The seeds that blew up late before LayerNorm critics (Q → −2200…−6869, KL → 1248…6870,
+    critic loss → 2e5 in one iteration) stay bounded through the whole shipped budget."""
+    import subprocess
+    import sys
+
+    from espl_jax import rundir
+
+    run_dir = tmp_path / "run"
+    subprocess.run(
+        [sys.executable, "-m", "espl_jax.train", "--env", "lunarlander_params", "--actor", actor,
+         "--seed", str(seed), "--out", str(run_dir), "--no-progress"],
+        check=True,
+    )  # fmt: skip
+    rows = [r for r in rundir.read_metrics(run_dir / rundir.METRICS_FILE) if r["iteration"] >= 10]
+    assert max(r["critic_loss"] for r in rows) < 2e4
+    assert min(r["q"] for r in rows) > -1000
+    assert max(r["kl"] for r in rows) < 200
