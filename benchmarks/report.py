@@ -233,6 +233,8 @@ class Group:
             how = "single run"
         if self.physics:
             how += f", {self.physics}"
+        if self.res.data.get("variant"):  # what the file varies, e.g. the critic
+            how += f", {self.res.data['variant']}"
         return how
 
 
