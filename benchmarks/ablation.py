@@ -10,7 +10,8 @@ the README's command for that seed); runs already finished in ``--out`` are reus
 killed sweep continues where it stopped. The results file has one row per variant and seed
 (the exported formula's return and length) and the paper's value for the variant;
 ``python benchmarks/report.py`` shows it on docs/ablations.md. CSP's meta-RL ablation is the
-same with ``--env`` a task family (layouts ``csp`` and the plain/dense ones).
+same with ``--env`` a task family: CSP, CSP_p, CSP_d, CSP_l1, scored by the test return under
+PEARL's protocol. Consecutive seeds run as one vmapped ``--seeds N`` run.
 """
 
 from __future__ import annotations
@@ -23,12 +24,22 @@ from pathlib import Path
 
 from env_throughput import write_result
 
+from espl_jax.envs import is_family
+
 # variant → the config keys it changes (ESPL itself: the shipped config as it is).
 VARIANTS = {
     "ESPL": {},
     "ESPL_p": {"layout": "plain"},
     "ESPL_d": {"layout": "dense"},
     "ESPL_l1": {"selector": "l1"},
+}
+# CSP's ablation (paper App. "Ablation Study for Meta-RL", Figure "ablation_result"): the same
+# changes to a task family's shipped CSP config.
+META_VARIANTS = {
+    "CSP": {},
+    "CSP_p": {"layout": "plain"},
+    "CSP_d": {"layout": "dense"},
+    "CSP_l1": {"selector": "l1"},
 }
 # The paper's Table (single task), per env: ESPL, ESPL_p, ESPL_d, ESPL_l1.
 PAPER_TABLE = {
@@ -50,52 +61,113 @@ def seeds_arg(text: str) -> list[int]:
     return [int(s) for s in text.split(",")]
 
 
-def run_one(env: str, variant: str, seed: int, out: Path) -> Path:
-    run_dir = out / f"{env}-{variant}-s{seed}"
+def blocks(seeds: list[int]) -> list[list[int]]:
+    """Runs of consecutive seeds: each becomes one ``--seeds N --seed FIRST`` run."""
+    out: list[list[int]] = []
+    for s in sorted(set(seeds)):
+        if out and s == out[-1][-1] + 1:
+            out[-1].append(s)
+        else:
+            out.append([s])
+    return out
+
+
+def run_dir_for(out: Path, env: str, variant: str, block: list[int]) -> Path:
+    tail = f"s{block[0]}" if len(block) == 1 else f"s{block[0]}-{block[-1]}"
+    return out / f"{env}-{variant}-{tail}"
+
+
+def run_block(env: str, variant: str, changes: dict, block: list[int], out: Path) -> Path:
+    """Seed ``block[0] + i`` of a ``--seeds N --seed block[0]`` run is the ``--seed block[0]+i``
+    run (espl_jax/keys.py), so a block trains its seeds vmapped in one process and compile."""
+    run_dir = run_dir_for(out, env, variant, block)
     if (run_dir / "eval.json").is_file():
         return run_dir
     config = out / f"{env}-{variant}.yaml"
-    config.write_text("".join(f"{k}: {v}\n" for k, v in VARIANTS[variant].items()))
-    cmd = [sys.executable, "-m", "espl_jax.train", "--env", env, "--seed", str(seed)]
-    cmd += ["--config", str(config), "--no-progress"]
+    config.write_text("".join(f"{k}: {v}\n" for k, v in changes.items()))
+    cmd = [sys.executable, "-m", "espl_jax.train", "--env", env, "--seed", str(block[0])]
+    cmd += ["--seeds", str(len(block)), "--config", str(config), "--no-progress"]
     cmd += ["--resume", str(run_dir)] if run_dir.exists() else ["--out", str(run_dir)]
     subprocess.run(cmd, check=True)
     return run_dir
+
+
+def seed_rows(run_dir: Path, first_seed: int) -> list[dict]:
+    """(seed, return, length) per seed of a finished run: the exported formula's evaluation for
+    a single task, the test return under PEARL's protocol for a task family."""
+    record = json.loads((run_dir / "eval.json").read_text())
+    rows = []
+    for entry in record["per_seed"]:
+        if "test_return" in entry:
+            ret, reference = entry["test_return"], None
+            length = entry.get(
+                "length", record.get("length") if len(record["per_seed"]) == 1 else None
+            )
+        else:
+            ret = entry["jax_eval"]["mean"]
+            reference = (entry.get("reference_eval") or {}).get("mean")
+            length = entry.get("length")
+        rows.append(
+            {
+                "seed": first_seed + entry["seed"],
+                "return": ret,
+                "reference_return": reference,
+                "length": length,
+                "run": run_dir.name,
+            }
+        )
+    return rows
+
+
+def existing_runs(out: Path, env: str, variant: str) -> dict[int, Path]:
+    """Seeds already finished in ``out`` by earlier blocks (so a sweep can be widened)."""
+    found: dict[int, Path] = {}
+    for run_dir in out.glob(f"{env}-{variant}-s*"):
+        if not (run_dir / "eval.json").is_file():
+            continue
+        tail = run_dir.name.rsplit("-s", 1)[1]
+        lo, _, hi = tail.partition("-")
+        for s in range(int(lo), int(hi or lo) + 1):
+            found[s] = run_dir
+    return found
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--env", required=True)
     parser.add_argument("--seeds", default="0-2", help="e.g. 0-2 or 0,3")
-    parser.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated")
+    parser.add_argument(
+        "--variants",
+        help=f"comma-separated (default: all; single task: {', '.join(VARIANTS)}; "
+        f"task family: {', '.join(META_VARIANTS)})",
+    )
     parser.add_argument("--out", type=Path, required=True, help="folder for the run directories")
     parser.add_argument("--json", required=True, help="results file to write")
     args = parser.parse_args(argv)
-    variants = args.variants.split(",")
-    unknown = sorted(set(variants) - set(VARIANTS))
+    table = META_VARIANTS if is_family(args.env) else VARIANTS
+    variants = args.variants.split(",") if args.variants else list(table)
+    unknown = sorted(set(variants) - set(table))
     if unknown:
-        parser.error(f"unknown variants {unknown}; known: {', '.join(VARIANTS)}")
+        parser.error(f"unknown variants {unknown} for {args.env}; known: {', '.join(table)}")
     args.out.mkdir(parents=True, exist_ok=True)
     paper = PAPER_TABLE.get(args.env)
+    seeds = seeds_arg(args.seeds)
     rows = []
     for variant in variants:
-        for seed in seeds_arg(args.seeds):
-            record = json.loads(
-                (run_one(args.env, variant, seed, args.out) / "eval.json").read_text()
-            )
-            rows.append(
-                {
-                    "env": args.env,
-                    "variant": variant,
-                    "changes": VARIANTS[variant],
-                    "seed": seed,
-                    "return": record["jax_eval"]["mean"],
-                    "reference_return": (record.get("reference_eval") or {}).get("mean"),
-                    "length": record.get("length"),
-                    "paper": None if paper is None else paper[list(VARIANTS).index(variant)],
-                }
-            )
-            print(json.dumps(rows[-1]), flush=True)
+        done = existing_runs(args.out, args.env, variant)
+        for block in blocks([s for s in seeds if s not in done]):
+            run_dir = run_block(args.env, variant, table[variant], block, args.out)
+            done.update({s: run_dir for s in block})
+        for run_dir in sorted(set(done.values())):
+            first = int(run_dir.name.rsplit("-s", 1)[1].partition("-")[0])
+            for row in seed_rows(run_dir, first):
+                if row["seed"] not in seeds:
+                    continue
+                row = {"env": args.env, "variant": variant, "changes": table[variant], **row}
+                row["paper"] = None if paper is None else paper[list(table).index(variant)]
+                rows.append(row)
+                print(json.dumps(row), flush=True)
+    rows.sort(key=lambda r: (variants.index(r["variant"]), r["seed"]))
     write_result(args.json, rows, argv, script="benchmarks/ablation.py")
 
 
