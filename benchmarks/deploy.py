@@ -17,9 +17,13 @@ observations in, N actions (in the env's units) out, for
   generated network), as they share one formula.
 
 Symbolic policies: a run's exported formula with ``--run DIR`` (the env from its config.yaml,
-the best seed from eval.json), otherwise the paper's Table 3 formulas (``paper_formulas``). The
-meta-RL families (``META_FAMILIES``) get PEARL/Hyper rows at their single-task env's sizes until
-CSP formulas are plugged into ``CSP_FORMULAS``.
+the best seed from eval.json), otherwise the paper's Table 3 formulas (``paper_formulas``). A
+meta-RL family (``META_FAMILIES``) gets its CSP row from a CSP run's directory (``--run DIR``):
+the formula adapted to each test task under PEARL's protocol (``espl_jax.load(DIR).adapted(i)``,
+exactly what the run's test_tasks/<i>/policy.py computes) is timed, and the row gives the
+median over test tasks (FLOPs and ms, per implementation) with every task's figures beside it.
+PEARL's and Hyper's rows are at the paper's sizes on the family's observation and action sizes,
+as for the paper's table "FLOPs (k)/Inference time (ms) of different contextual policies".
 
 Per row: FLOPs per robot-step counted analytically (formula operators over the shared DAG, the
 code that runs after CSE, + tanh + 2 for the affine action scaling per action; dense layers
@@ -37,11 +41,14 @@ a formula's time is mostly those and one array pass per operator, not FLOPs at m
     python benchmarks/deploy.py                       # every env, 5000 robots, paper formulas
     python benchmarks/deploy.py --envs cartpole hopper --robots 1000 --json deploy.json
     python benchmarks/deploy.py --run runs/cartpole   # a trained run's formula for its env
+    python benchmarks/deploy.py --envs hopper_params --run runs/hopper_params-symbolic-...
 
 Output: a table on stdout, then the acceptance summary (the issue's bar: the symbolic policy is
 >= 100x faster per step than PEARL's MLP in the same implementation, numpy vs numpy and JAX vs
 JAX, judged on median times, best times shown too; it says where and why not) and the wall time.
-``--json PATH`` writes a list of rows: env, policy, impl (numpy | c | jax), robots,
+``--json PATH`` writes a results file (command, commit, machine, date and ``rows``, as every
+file under results/), one row per policy and implementation: env, family (bool), method (ESPL,
+CSP, SAC, PEARL, Hyper), policy, impl (numpy | c | jax), robots,
 flops_per_robot_step (analytic), ms_per_step (median), ms_per_step_best, timing,
 xla_flops_per_robot_step, xla_transcendentals_per_robot_step, dtype, bytes_per_step,
 compute_bound_ms, memory_bound_ms, bound (compute | memory), time_over_bound,
@@ -53,7 +60,6 @@ from __future__ import annotations
 
 import argparse
 import ctypes
-import json
 import os
 import shutil
 import subprocess
@@ -75,6 +81,9 @@ from espl_jax import envs, reference_eval
 from espl_jax import expression as ex
 from espl_jax.analyze import exported_expressions
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from env_throughput import write_result  # noqa: E402
+
 SINGLE_TASK_ENVS = (
     "cartpole",
     "mountaincar",
@@ -94,10 +103,6 @@ META_FAMILIES = {
     "cheetah_vel_ood": "halfcheetah",
     "lunarlander_params": "lunarlander",
 }
-# Extension point: family -> function returning its CSP policy's protected expressions (the
-# formula for one task; every robot of the batch runs it). A family listed here gets the three
-# symbolic rows, labelled "CSP", like a single-task env's ESPL formula.
-CSP_FORMULAS: dict[str, Callable[[], list[sp.Expr]]] = {}
 
 SAC_HIDDEN = tuple(config_lib.Config().mlp_actor_hidden)  # the project's MLP actor, 256×2
 PEARL_HIDDEN, PEARL_LATENT = (300, 300, 300), 5  # PEARL's policy on s ⊕ z
@@ -494,6 +499,42 @@ def env_sizes(name: str) -> tuple[int, np.ndarray, np.ndarray]:
     return env.obs_dim, np.asarray(env.action_low, float), np.asarray(env.action_high, float)
 
 
+def adapted_formulas(run_dir: Path) -> list[tuple[int, list[sp.Expr]]]:
+    """(test task, CSP's protected expressions adapted to it) for every test task of a CSP run,
+    rebuilt from its checkpoint and eval.json's z (``espl_jax.api.Run.adapted``)."""
+    import espl_jax
+
+    run = espl_jax.load(run_dir)
+    tasks = run.eval.get("test", {}).get("per_task", [])
+    return [(i, list(run.adapted(i).expressions)) for i in range(len(tasks))]
+
+
+def method_of(policy_name: str) -> str:
+    """ESPL, CSP, SAC, PEARL or Hyper: the policy column of the paper's tables."""
+    return policy_name.split()[0]
+
+
+def median_over_tasks(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per (env, policy, impl) where a policy was timed once per test task: the task at
+    the median time (lower median) stands for them, with every task's FLOPs and ms beside it."""
+    groups: dict[tuple, list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault((r["env"], r["policy"], r["impl"]), []).append(r)
+    out = []
+    for group in groups.values():
+        if len(group) == 1:
+            out.append(group[0])
+            continue
+        ranked = sorted(group, key=lambda r: r["ms_per_step"])
+        row = dict(ranked[(len(ranked) - 1) // 2])
+        row["tasks"] = len(group)
+        row["per_task_flops"] = [r["flops_per_robot_step"] for r in group]
+        row["per_task_ms"] = [r["ms_per_step"] for r in group]
+        row["note"] = f"median of {len(group)} test tasks ({row['note']})"
+        out.append(row)
+    return out
+
+
 def policies_for(
     name: str, robots: int, runs: dict[str, Path], workdir: Path, rng: np.random.Generator
 ) -> list[Policy]:
@@ -505,11 +546,14 @@ def policies_for(
     sizes_note = f"sizes of {size_env}" if family else ""
 
     exprs, label, note = None, "", ""
-    if name in runs:
+    if family and name in runs:
+        for task, task_exprs in adapted_formulas(runs[name]):
+            obs = rng.standard_normal((robots, obs_dim))
+            label, note = f"CSP ({runs[name].name})", f"test task {task}"
+            policies.append(symbolic_policy(name, label, task_exprs, obs, low, high, workdir, note))
+    elif name in runs:
         exprs = exported_expressions(runs[name])
-        label, note = ("CSP" if family else "ESPL") + f" ({runs[name].name})", str(runs[name])
-    elif family and name in CSP_FORMULAS:
-        exprs, label = CSP_FORMULAS[name](), "CSP"
+        label, note = f"ESPL ({runs[name].name})", str(runs[name])
     elif not family:
         exprs, label = paper_formulas(name), "ESPL (paper Table 3)"
         note = PAPER_OBSERVATION_NOTES.get(name, "")
@@ -561,6 +605,8 @@ def measure(
         rows.append(
             {
                 "env": policy.env,
+                "family": policy.env in META_FAMILIES,
+                "method": method_of(policy.name),
                 "policy": policy.name,
                 "impl": impl.name,
                 "robots": robots,
@@ -595,7 +641,7 @@ def acceptance(rows: list[dict[str, Any]], floors: dict[str, float]) -> list[str
         by = {(r["policy"].split()[0], r["impl"]): r for r in rows if r["env"] == env}
         symbolic = [p for p in ("ESPL", "CSP") if (p, "numpy") in by]
         if not symbolic:
-            lines.append(f"{env}: no symbolic policy yet (CSP formula not plugged in)")
+            lines.append(f"{env}: no symbolic policy (give a CSP run directory with --run)")
             continue
         for impl in ("numpy", "jax"):
             ours, pearl = by[(symbolic[0], impl)], by[("PEARL", impl)]
@@ -682,7 +728,10 @@ def main(argv: list[str] | None = None) -> int:
     for run_dir in map(Path, args.run):
         if not (run_dir / "config.yaml").is_file():
             sys.exit(f"error: {run_dir} is not a run directory (no config.yaml)")
-        runs[config_lib.load(run_dir / "config.yaml").env] = run_dir
+        run_config = config_lib.load(run_dir / "config.yaml")
+        if run_config.env in META_FAMILIES and run_config.actor != "symbolic":
+            sys.exit(f"error: {run_dir} is a {run_config.actor} run; --run takes CSP runs")
+        runs[run_config.env] = run_dir
     names = list(args.envs or (*SINGLE_TASK_ENVS, *META_FAMILIES))
     names += [env for env in runs if env not in names]
 
@@ -717,6 +766,7 @@ def main(argv: list[str] | None = None) -> int:
             for policy in policies_for(name, args.robots, runs, Path(tmp), rng):
                 rows += measure(policy, args.robots, args.repeats, limits, costs)
             print(f"  timed {name} ({time.perf_counter() - start:.0f} s)", file=sys.stderr)
+    rows = median_over_tasks(rows)
     machine = {**limits, **{f"{k}_call_floor_s": v for k, v in floors.items() if k != "c"}}
     for row in rows:
         row.update(machine)
@@ -727,7 +777,7 @@ def main(argv: list[str] | None = None) -> int:
     wall = time.perf_counter() - start
     print(f"\nwall time: {wall:.0f} s")
     if args.json:
-        Path(args.json).write_text(json.dumps(rows, indent=2) + "\n")
+        write_result(args.json, rows, argv, script="benchmarks/deploy.py")
     return 0
 
 

@@ -4,6 +4,7 @@ and fails, naming the file, once a generated table is edited by hand (in a copy 
 from __future__ import annotations
 
 import ast
+import json
 import shutil
 import subprocess
 import sys
@@ -74,6 +75,38 @@ def test_a_new_results_file_of_the_same_schema_shows_up(tree: Path):
     page = (tree / "docs" / "ablations.md").read_text()
     assert "512.50" in page and "Not yet run" not in page
     assert check(tree).returncode == 0
+
+
+def test_the_meta_rl_deployment_table_sits_beside_the_papers(tree: Path):
+    # deploy.py --run CSP_DIR rows of a family: CSP (median test task), PEARL, Hyper per impl.
+    def row(method: str, impl: str, flops: int, ms: float, **extra) -> str:
+        fields = {
+            "env": "hopper_params",
+            "family": True,
+            "method": method,
+            "impl": impl,
+            "policy": f"{method} (x)",
+            "flops_per_robot_step": flops,
+            "ms_per_step": ms,
+        }
+        return json.dumps({**fields, **extra})
+
+    csp = {"tasks": 10, "per_task_flops": [40] * 10, "per_task_ms": [1.5] * 10}
+    rows = [row("CSP", "numpy", 40, 1.25, **csp), row("CSP", "jax", 40, 0.75, **csp)]
+    rows += [row("PEARL", i, 372309, 90.0) for i in ("numpy", "jax")]
+    rows += [row("Hyper", i, 7433, 9.0) for i in ("numpy", "jax")]
+    (tree / "results" / "deploy_meta_rl.json").write_text(
+        '{"command": "python benchmarks/deploy.py --run x", "rows": [' + ", ".join(rows) + "]}\n"
+    )
+    subprocess.run([sys.executable, str(REPORT), "--root", str(tree)], check=True, timeout=60)
+    page = (tree / "docs" / "deployment.md").read_text()
+    line = next(ln for ln in page.splitlines() if ln.startswith("| hopper_params |"))
+    # ours (k FLOPs / numpy ms / JAX ms) beside the paper's (0.51/4.13, 186.9/26.6, 4.1/17.2)
+    assert "| 0.04 / 1.25 / 0.75 | 0.51 / 4.13 |" in line
+    assert (
+        "| 372 / 90 / 90 | 186.90 / 26.60 |" in line and "| 7.43 / 9 / 9 | 4.10 / 17.20 |" in line
+    )
+    assert "10 tasks" in line
 
 
 def test_the_readme_shows_the_api_tests_example_verbatim():
