@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import textwrap
 import typing
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, fields
@@ -104,8 +105,8 @@ _SIZES = "positive integers below 2**31: its type is its range"
 class Config:
     """Everything a run needs. Sizes fix array shapes; the rest are plain hyperparameters.
 
-    Each key is declared once, with its doc and its range; ``_validate`` checks every key from
-    its declaration.
+    Each key is declared once, with its doc and its range (``python -m espl_jax.config`` lists
+    them); ``_validate`` checks every key from its declaration.
     """
 
     env: str = RUN(
@@ -608,3 +609,31 @@ def save(config: Config, path: str | Path) -> None:
 
 def load(path: str | Path) -> Config:
     return from_mapping(load_yaml(path))
+
+
+def key_table() -> str:
+    """Every key, by group: name, type, default and range, then its doc (from the metadata)."""
+    width = max(len(f.name) for f in fields(Config))
+    lines = []
+    for group in GROUPS:
+        lines += ["", f"[{group.name}] {group.title}"]
+        for f in fields(Config):
+            if f.metadata["group"] != group.name:
+                continue
+            kind = _field_type(f)
+            type_name = "list[int]" if kind is tuple else kind.__name__
+            check = f.metadata["check"]
+            limits = check.requirement if check is not None else f.metadata["unchecked"]
+            if kind is int and "2**31" not in limits:
+                limits += ", below 2**31"
+            lines.append(
+                f"  {f.name:<{width}}  {type_name:<9}  {_plain(f.default)!s:<16}  {limits}"
+            )
+            lines += textwrap.wrap(
+                f.metadata["doc"], 98, initial_indent=" " * 6, subsequent_indent=" " * 6
+            )
+    return "\n".join(lines[1:]) + "\n"
+
+
+if __name__ == "__main__":
+    print(key_table(), end="")

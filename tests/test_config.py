@@ -1,5 +1,7 @@
 """Config: every shipped YAML resolves and round-trips; bad input is a UserError naming the key."""
 
+import subprocess
+import sys
 from dataclasses import fields
 from pathlib import Path
 
@@ -234,3 +236,18 @@ def test_a_file_with_the_keys_in_another_order_loads_the_same(tmp_path):
     out = tmp_path / "config.yaml"
     out.write_text(yaml.safe_dump(dict(reversed(cfg.to_dict().items())), sort_keys=False))
     assert config_lib.load(out) == cfg
+
+
+def test_key_table_lists_every_key():
+    proc = subprocess.run(
+        [sys.executable, "-m", "espl_jax.config"], capture_output=True, text=True, check=True
+    )
+    lines = proc.stdout.splitlines()
+    for group in config_lib.GROUPS:
+        assert f"[{group.name}] {group.title}" in lines
+    rows = {line.split()[0]: line for line in lines if line.startswith("  ") and line[2] != " "}
+    assert set(rows) == {f.name for f in fields(Config)}
+    assert rows["actor"].split()[1:4] == ["str", "symbolic", "one"]
+    assert rows["gamma"].split()[1:] == ["float", "0.99", "in", "(0,", "1]"]
+    assert rows["critic_hidden"].split()[1:4] == ["list[int]", "[256,", "256]"]
+    assert "posterior of that fresh context" in proc.stdout  # the docs are printed
