@@ -135,11 +135,17 @@ def config_case(id_: str, text: str, *fragments: str) -> Case:
                 config_text=text)  # fmt: skip
 
 
-# Out-of-range and non-finite values for every numeric key of the config.
+# Out-of-range and non-finite values for every numeric key of the config: by the range its
+# declaration gives (config.Check), with the message each range has always had.
+_OUTSIDE = {
+    config_lib.positive: (0, "must be positive"),
+    config_lib.non_negative: (-1, "must be >= 0"),
+    config_lib.unit_interval: (1.5, "must be in (0, 1]"),
+    config_lib.above_zero: (0.0, "must be > 0"),
+    config_lib.seed_range: (-1, "must be in [0, 2**31)"),
+}
 _SPECIAL = {
-    "reference_eval_episodes": (-1, "reference_eval_episodes must be >= 0"),
     "exploration_correlation": (1.0, "exploration_correlation must be in [0, 1)"),
-    "seed": (-1, "seed must be in [0, 2**31)"),
     "task_seed": (2**31, "task_seed must be in [0, 2**31)"),
 }
 NUMERIC_KEYS = [
@@ -150,17 +156,11 @@ NUMERIC_KEYS = [
 def _out_of_range(key: str) -> tuple[object, str]:
     if key in _SPECIAL:
         return _SPECIAL[key]
-    if key in config_lib._POSITIVE_INT:
-        return 0, f"{key} must be positive"
-    if key in config_lib._NON_NEGATIVE_INT:
-        return -1, f"{key} must be >= 0"
-    if key in config_lib._UNIT_INTERVAL:
-        return 1.5, f"{key} must be in (0, 1]"
-    if key in config_lib._POSITIVE_FLOAT:
-        return 0.0, f"{key} must be > 0"
-    if key in config_lib._NON_NEGATIVE_FLOAT:
-        return -0.5, f"{key} must be >= 0"
-    raise AssertionError(f"the bad-input table has no out-of-range value for {key}")
+    check = next(f for f in fields(config_lib.Config) if f.name == key).metadata["check"]
+    if check not in _OUTSIDE:
+        raise AssertionError(f"the bad-input table has no out-of-range value for {key}")
+    value, message = _OUTSIDE[check]
+    return value, f"{key} {message}"
 
 
 def _non_finite(key: str) -> str:

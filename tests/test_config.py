@@ -1,5 +1,7 @@
 """Config: every shipped YAML resolves and round-trips; bad input is a UserError naming the key."""
 
+import subprocess
+import sys
 from dataclasses import fields
 from pathlib import Path
 
@@ -197,3 +199,55 @@ def test_two_runs_started_in_the_same_second_get_different_directories(tmp_path)
     cfg = config_lib.resolve("cartpole")
     first, second = run.new_run_dir(cfg, tmp_path), run.new_run_dir(cfg, tmp_path)
     assert first != second and first.is_dir() and second.is_dir()
+
+
+# Each key declared once: its doc and its range in the field's metadata ------------------------
+
+
+def test_every_key_is_declared_with_a_doc_and_a_range():
+    """A new key cannot come without them: validation and the key table read nothing else."""
+    groups = {g.name for g in config_lib.GROUPS}
+    for f in fields(Config):
+        meta = f.metadata
+        assert meta["group"] in groups, f.name
+        assert meta["doc"].strip(), f"{f.name} has no doc"
+        if meta["check"] is None:
+            assert meta["unchecked"].strip(), f"{f.name} has no range and no reason for none"
+            assert config_lib._field_type(f) not in (int, float), f"{f.name}: a number's range"
+        else:
+            assert isinstance(meta["check"], config_lib.Check), f.name
+            assert meta["check"].ok(getattr(Config(), f.name)), f"{f.name}'s default is refused"
+    with pytest.raises(TypeError, match="needs a doc and a check"):
+        config_lib.RUN(1, "a count", None)
+    with pytest.raises(TypeError, match="needs a doc and a check"):
+        config_lib.RUN(1, "", config_lib.positive)
+
+
+def test_each_group_is_declared_in_one_piece():
+    """The meta-RL keys (and every other group's) sit together, in the order of GROUPS."""
+    order = [f.metadata["group"] for f in fields(Config)]
+    runs = [g for i, g in enumerate(order) if i == 0 or g != order[i - 1]]
+    assert runs == [g.name for g in config_lib.GROUPS]
+
+
+def test_a_file_with_the_keys_in_another_order_loads_the_same(tmp_path):
+    """config.yaml is read by name: a run saved with another key order resumes unchanged."""
+    cfg = config_lib.resolve("cheetah_vel_ood")
+    out = tmp_path / "config.yaml"
+    out.write_text(yaml.safe_dump(dict(reversed(cfg.to_dict().items())), sort_keys=False))
+    assert config_lib.load(out) == cfg
+
+
+def test_key_table_lists_every_key():
+    proc = subprocess.run(
+        [sys.executable, "-m", "espl_jax.config"], capture_output=True, text=True, check=True
+    )
+    lines = proc.stdout.splitlines()
+    for group in config_lib.GROUPS:
+        assert f"[{group.name}] {group.title}" in lines
+    rows = {line.split()[0]: line for line in lines if line.startswith("  ") and line[2] != " "}
+    assert set(rows) == {f.name for f in fields(Config)}
+    assert rows["actor"].split()[1:4] == ["str", "symbolic", "one"]
+    assert rows["gamma"].split()[1:] == ["float", "0.99", "in", "(0,", "1]"]
+    assert rows["critic_hidden"].split()[1:4] == ["list[int]", "[256,", "256]"]
+    assert "posterior of that fresh context" in proc.stdout  # the docs are printed

@@ -39,6 +39,11 @@ from espl_jax.cli import run_main
 from espl_jax.config import Config
 
 FIELD_TYPES = {f.name: config_lib._field_type(f) for f in fields(Config)}
+CHOICES = {  # the keys declared with config.choice(...), and their choices
+    f.name: f.metadata["check"].choices
+    for f in fields(Config)
+    if f.metadata["check"] is not None and f.metadata["check"].choices
+}
 # The parser's flags that set a config field of the same name (--env, --seeds, --physics, …).
 CONFIG_FLAGS = {
     a.dest: a for a in train.parser()._actions if a.option_strings and a.dest in FIELD_TYPES
@@ -65,8 +70,8 @@ def typical(key: str) -> st.SearchStrategy:
     kind = FIELD_TYPES[key]
     if key == "env":
         return st.sampled_from([*ENV_NAMES, "", "mars"])
-    if key in config_lib._CHOICES:
-        return st.sampled_from([*config_lib._CHOICES[key], "", "other"])
+    if key in CHOICES:
+        return st.sampled_from([*CHOICES[key], "", "other"])
     if kind is bool:
         return st.booleans()
     if kind is int:
