@@ -257,7 +257,8 @@ class Trainer:
 
     def seed_keys(self) -> jax.Array:
         """[S, 2]: seed i of a ``--seeds S --seed K`` run is ``PRNGKey(K + i)``, the key of a
-        one-seed ``--seed K+i`` run, so a sweep's seeds are the single runs' seeds."""
+        one-seed ``--seed K+i`` run. (Its training rounds differently under vmap, and RL
+        amplifies that: the keys are the single run's, the returns another draw.)"""
         return seed_keys(self.config.seed, self.config.seeds)
 
     def init_seeds(self) -> TrainState:
