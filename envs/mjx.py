@@ -37,7 +37,6 @@ raw action (MuJoCo clamps the control itself), so both agree for every in-bounds
 from __future__ import annotations
 
 import contextlib
-import copy
 import functools
 import importlib.util
 import os
@@ -131,16 +130,6 @@ class MjxState:
     t: jax.Array
 
 
-# Newton / line-search iterations of MJX's constraint solver. gymnasium's XMLs set 100 / 50;
-# MuJoCo's C engine stops once converged, and MJX does too, but a vmapped batch iterates until its
-# last member converges and the compiled loop bounds cost on an accelerator. With 6 / 6 MJX's
-# deviation from CPU MuJoCo over 100 steps (free-running and re-synced) is the same as with
-# 100 / 50 on hopper, walker2d, halfcheetah, inverted_double_pendulum and the swing-up, and
-# batch-16 stepping is 1.9-6x faster (results/mjx_fidelity.json, mjx_fidelity_more_envs.json).
-# The native backend and the host model (``MjxEnv.model``) keep gymnasium's settings.
-MJX_SOLVER_ITERATIONS = (6, 6)
-
-
 class MjxEnv(Environment):
     """Common machinery of the MJX envs: model loading, params, reset noise, frame-skipped step.
 
@@ -176,13 +165,10 @@ class MjxEnv(Environment):
 
     @functools.cached_property
     def _mx(self) -> mjx.Model:
-        """The MJX model, put on the device on first use (the native backend never needs it),
-        with ``MJX_SOLVER_ITERATIONS``. Concrete even when first asked for inside a jit trace:
-        a cached tracer would leak."""
-        model = copy.deepcopy(self.model)
-        model.opt.iterations, model.opt.ls_iterations = MJX_SOLVER_ITERATIONS
+        """The MJX model, put on the device on first use (the native backend never needs it).
+        Concrete even when first asked for inside a jit trace: a cached tracer would leak."""
         with jax.ensure_compile_time_eval():
-            return mjx.put_model(model)
+            return mjx.put_model(self.model)
 
     @functools.cached_property
     def _data0(self) -> mjx.Data:
