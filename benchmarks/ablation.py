@@ -147,6 +147,12 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--out", type=Path, required=True, help="folder for the run directories")
     parser.add_argument("--json", required=True, help="results file to write")
+    parser.add_argument(
+        "--finished-only",
+        action="store_true",
+        help="write the rows of the runs already finished in --out and start none (a sweep "
+        "still under way, or killed)",
+    )
     args = parser.parse_args(argv)
     table = META_VARIANTS if is_family(args.env) else VARIANTS
     variants = args.variants.split(",") if args.variants else list(table)
@@ -159,7 +165,7 @@ def main(argv: list[str] | None = None) -> None:
     rows = []
     for variant in variants:
         done = existing_runs(args.out, args.env, variant)
-        for block in blocks([s for s in seeds if s not in done]):
+        for block in [] if args.finished_only else blocks([s for s in seeds if s not in done]):
             run_dir = run_block(args.env, variant, table[variant], block, args.out)
             done.update({s: run_dir for s in block})
         for run_dir in sorted(set(done.values())):
