@@ -109,23 +109,15 @@ def collect(
             part, mask = where(fresh, draw(episode), (part, mask))
         policy = actor.policy(actor_params, part)
         action, eps = explore(actor, rho, policy, mask, r.obs, r.exploration_noise, k_act)
-        next_obs, next_state, reward, terminated, truncated, _ = env.step(
-            k_env, r.env_state, action, task_params
-        )
-        done = terminated | truncated
-        reset_obs, reset_state = env.reset(k_reset, task_params)
-        ep_return = r.episode_return + reward
+        s = env.step_autoreset(k_env, k_reset, r.env_state, action, task_params)
+        done = s.reset  # every ended episode is reset
+        ep_return = r.episode_return + s.reward
         out = (
-            Transition(r.obs, action, reward, next_obs, terminated),
+            Transition(r.obs, action, s.reward, s.obs, s.terminated),
             done,
             jnp.where(done, ep_return, 0.0),
         )
-        r = Rollout(
-            where(done, reset_state, next_state),
-            jnp.where(done, reset_obs, next_obs),
-            jnp.where(done, 0.0, ep_return),
-            eps,
-        )
+        r = Rollout(s.next_state, s.next_obs, jnp.where(done, 0.0, ep_return), eps)
         return (r, part, mask, done, episode + done.astype(jnp.int32)), out
 
     keys = jax.random.split(key, steps)
@@ -203,28 +195,30 @@ def adapt_and_evaluate(
         active = c["active"]
         policy = actor.policy(actor_params, c["part"])
         action = actor.deterministic(policy, c["mask"], c["obs"])
-        next_obs, next_state, reward, terminated, truncated, _ = env.step(
-            k_env, c["env_state"], action, task_params
-        )
+        # A trajectory that ends within the budget is followed by another (``again``).
+        s = env.step_autoreset(
+            k_env, k_reset, c["env_state"], action, task_params,
+            may_reset=active & (c["steps"] + 1 < eval_steps),
+        )  # fmt: skip
+        reward, next_obs = s.reward, s.obs
         mu, var = encoder.factors(
-            encoder_params, Transition(c["obs"], action, reward, next_obs, terminated)
+            encoder_params, Transition(c["obs"], action, reward, next_obs, s.terminated)
         )
         posterior = c["posterior"].add(mu, var, jnp.where(active, 1.0, 0.0))
         ep_return = c["ep_return"] + jnp.where(active, reward, 0.0)
         steps = c["steps"] + active.astype(jnp.int32)
-        ended = active & (terminated | truncated)
+        ended = active & (s.terminated | s.truncated)
         trajectories = c["trajectories"] + ended.astype(jnp.int32)
-        again = ended & (steps < eval_steps)
+        again = s.reset  # = ended & (steps < eval_steps)
         # The next trajectory's z: the posterior once enough trajectories exist, else the prior.
         post_mu, post_var = posterior.gaussian()
         use_posterior = trajectories >= exploration_trajectories
         noise = jax.random.normal(k_z, (latent,))
         new_z = jnp.where(use_posterior, post_mu + jnp.sqrt(post_var) * noise, noise)
         new_part, new_mask = task_policy(new_z)
-        reset_obs, reset_state = env.reset(k_reset, task_params)
         c = dict(
-            env_state=where(again, reset_state, next_state),
-            obs=jnp.where(again, reset_obs, next_obs),
+            env_state=s.next_state,
+            obs=s.next_obs,
             ep_return=jnp.where(again, 0.0, ep_return),
             steps=steps,
             trajectories=trajectories,

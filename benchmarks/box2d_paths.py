@@ -1,0 +1,169 @@
+"""The two ways of stepping a Box2D env (gymnasium on the host) in training, timed side by side.
+
+- ``host``: the host driver (``espl_jax.host.HostCollector``): a Python loop over the env steps of
+  a gymnasium ``SyncVectorEnv`` (one env per seed) that calls the jitted, seed-vmapped
+  exploration policy once per step;
+- ``callback``: the one rollout path (``Trainer.collect_single`` inside the jitted chunk): the env
+  is a functional ``Environment`` (``envs/box2d.py``) whose step is one ``jax.pure_callback`` per
+  env step for the whole seed batch, inside the compiled ``lax.scan``.
+
+For each ``--seeds`` count, with the shipped config of ``--env`` (only ``seeds`` changed), it times
+(after one warm-up call, best of ``--repeats``, the two paths interleaved so that both see the same
+background load) one iteration's collection (``steps_per_iteration`` env steps per seed) and, with
+``--iteration`` (for the ``--iteration-seeds`` counts), one whole iteration (collection and
+``updates_per_iteration`` SAC updates; the updates are the same jitted code in both). The load
+average is recorded beside each row, since other jobs may share the cores::
+
+    python benchmarks/box2d_paths.py --env lunarlander --seeds 1,2,3 --iteration 2 \
+        --json results/box2d_paths_lunarlander.json
+
+Not part of the test suite (CI never runs ``benchmarks/``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import jax
+from env_throughput import write_result
+
+from espl_jax import config as config_lib
+from espl_jax.learner import Trainer
+
+
+class CallbackTrainer(Trainer):
+    """The trainer with the Box2D env on the one rollout path (not the host driver)."""
+
+    on_host = False
+
+
+def _best(fn, repeats: int) -> float:
+    best = float("inf")
+    for _ in range(repeats):
+        started = time.perf_counter()
+        jax.block_until_ready(fn())
+        best = min(best, time.perf_counter() - started)
+    return best
+
+
+def measure(env: str, seeds: int, repeats: int, iteration: bool) -> list[dict]:
+    cfg = config_lib.resolve(env=env, seeds=seeds)
+    host_trainer, cb_trainer = Trainer(cfg), CallbackTrainer(cfg)
+    from espl_jax import host
+
+    collector = host.HostCollector(host_trainer)
+    host_state = host_trainer.init_seeds()
+
+    def host_collect():
+        key, actor, mask, step_keys, _ = collector._begin(
+            host_state.key, host_state.actor, host_state.iteration
+        )
+        return collector.collect(host_state.replace(actor=actor), mask, step_keys)[0]
+
+    def one_seed_collect(s):
+        key, mask, k_collect, _ = cb_trainer.start_iteration(s.key, s.actor)
+        return cb_trainer.collect_single(s, mask, k_collect)[1]
+
+    cb_collect_fn = cb_trainer.over_seeds(one_seed_collect)
+    cb_state = cb_trainer.init_seeds()
+
+    def cb_collect():
+        return cb_collect_fn(cb_state)
+
+    timings: dict[str, dict[str, float]] = {"host": {}, "callback": {}}
+    loads: dict[str, list[float]] = {"host": [], "callback": []}
+    for name, fn in (("host", host_collect), ("callback", cb_collect)):
+        started = time.perf_counter()
+        jax.block_until_ready(fn())
+        timings[name]["collect_first_s"] = time.perf_counter() - started
+    best = {"host": float("inf"), "callback": float("inf")}
+    for _ in range(repeats):
+        for name, fn in (("host", host_collect), ("callback", cb_collect)):
+            loads[name].append(os.getloadavg()[0])
+            best[name] = min(best[name], _best(fn, 1))
+    for name in best:
+        timings[name]["collect_s"] = best[name]
+
+    if iteration:
+        chunk = cb_trainer.compiled_chunk(1)
+        states = {"host": host_state, "callback": cb_state}
+
+        def host_iteration():
+            states["host"], metrics = collector.iteration(states["host"])
+            return metrics
+
+        def cb_iteration():
+            states["callback"], metrics = chunk(states["callback"])
+            return metrics
+
+        fns = (("host", host_iteration), ("callback", cb_iteration))
+        for name, fn in fns:
+            started = time.perf_counter()
+            jax.block_until_ready(fn())
+            timings[name]["iteration_first_s"] = time.perf_counter() - started
+        best = {"host": float("inf"), "callback": float("inf")}
+        for _ in range(iteration):
+            for name, fn in fns:
+                loads[name].append(os.getloadavg()[0])
+                best[name] = min(best[name], _best(fn, 1))
+        for name in best:
+            timings[name]["iteration_s"] = best[name]
+    collector.close()
+
+    steps = cfg.steps_per_iteration * seeds
+    rows = []
+    for name in ("host", "callback"):
+        t = timings[name]
+        rows.append(
+            {
+                "env": env,
+                "path": name,
+                "seeds": seeds,
+                "env_steps": steps,
+                "collect_s": t["collect_s"],
+                "env_steps_per_s": steps / t["collect_s"],
+                "collect_first_s": t["collect_first_s"],
+                "iteration_s": t.get("iteration_s"),
+                "iteration_first_s": t.get("iteration_first_s"),
+                "updates_per_iteration": cfg.updates_per_iteration,
+                "load_1min": loads[name],
+            }
+        )
+    return rows
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--env", default="lunarlander")
+    parser.add_argument("--seeds", default="1,2,3", help="comma-separated seed counts")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument(
+        "--iteration", type=int, default=0, help="also time whole iterations (this many repeats)"
+    )
+    parser.add_argument(
+        "--iteration-seeds", default="2", help="the seed counts whose iterations are timed"
+    )
+    parser.add_argument("--json", help="also write the rows, command and machine here")
+    args = parser.parse_args(argv)
+    rows = []
+    timed = {int(x) for x in args.iteration_seeds.split(",")}
+    for s in (int(x) for x in args.seeds.split(",")):
+        rows += measure(args.env, s, args.repeats, args.iteration if s in timed else 0)
+    print(f"\n{args.env}: best of {args.repeats} (collection), {args.iteration} (iteration)\n")
+    print("| path | seeds | collection (s) | env steps/s | iteration (s) | load (1 min) |")
+    print("|---|---|---|---|---|---|")
+    for r in rows:
+        it = "-" if r["iteration_s"] is None else f"{r['iteration_s']:.2f}"
+        load = ", ".join(f"{x:.1f}" for x in r["load_1min"])
+        print(
+            f"| {r['path']} | {r['seeds']} | {r['collect_s']:.2f} | {r['env_steps_per_s']:.0f} "
+            f"| {it} | {load} |"
+        )
+    if args.json:
+        write_result(args.json, rows, argv, script="benchmarks/box2d_paths.py")
+
+
+if __name__ == "__main__":
+    main()
