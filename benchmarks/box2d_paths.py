@@ -27,6 +27,7 @@ import os
 import time
 
 import jax
+import numpy as np
 from env_throughput import write_result
 
 from espl_jax import config as config_lib
@@ -78,13 +79,14 @@ def measure(env: str, seeds: int, repeats: int, iteration: bool) -> list[dict]:
         started = time.perf_counter()
         jax.block_until_ready(fn())
         timings[name]["collect_first_s"] = time.perf_counter() - started
-    best = {"host": float("inf"), "callback": float("inf")}
+    times: dict[str, list[float]] = {"host": [], "callback": []}
     for _ in range(repeats):
         for name, fn in (("host", host_collect), ("callback", cb_collect)):
             loads[name].append(os.getloadavg()[0])
-            best[name] = min(best[name], _best(fn, 1))
-    for name in best:
-        timings[name]["collect_s"] = best[name]
+            times[name].append(_best(fn, 1))
+    for name, ts in times.items():
+        timings[name]["collect_s"] = min(ts)
+        timings[name]["collect_median_s"] = float(np.median(ts))
 
     if iteration:
         chunk = cb_trainer.compiled_chunk(1)
@@ -103,13 +105,14 @@ def measure(env: str, seeds: int, repeats: int, iteration: bool) -> list[dict]:
             started = time.perf_counter()
             jax.block_until_ready(fn())
             timings[name]["iteration_first_s"] = time.perf_counter() - started
-        best = {"host": float("inf"), "callback": float("inf")}
+        times = {"host": [], "callback": []}
         for _ in range(iteration):
             for name, fn in fns:
                 loads[name].append(os.getloadavg()[0])
-                best[name] = min(best[name], _best(fn, 1))
-        for name in best:
-            timings[name]["iteration_s"] = best[name]
+                times[name].append(_best(fn, 1))
+        for name, ts in times.items():
+            timings[name]["iteration_s"] = min(ts)
+            timings[name]["iteration_median_s"] = float(np.median(ts))
     collector.close()
 
     steps = cfg.steps_per_iteration * seeds
@@ -123,9 +126,12 @@ def measure(env: str, seeds: int, repeats: int, iteration: bool) -> list[dict]:
                 "seeds": seeds,
                 "env_steps": steps,
                 "collect_s": t["collect_s"],
+                "collect_median_s": t["collect_median_s"],
                 "env_steps_per_s": steps / t["collect_s"],
+                "env_steps_per_s_median": steps / t["collect_median_s"],
                 "collect_first_s": t["collect_first_s"],
                 "iteration_s": t.get("iteration_s"),
+                "iteration_median_s": t.get("iteration_median_s"),
                 "iteration_first_s": t.get("iteration_first_s"),
                 "updates_per_iteration": cfg.updates_per_iteration,
                 "load_1min": loads[name],
@@ -151,15 +157,18 @@ def main(argv: list[str] | None = None) -> None:
     timed = {int(x) for x in args.iteration_seeds.split(",")}
     for s in (int(x) for x in args.seeds.split(",")):
         rows += measure(args.env, s, args.repeats, args.iteration if s in timed else 0)
-    print(f"\n{args.env}: best of {args.repeats} (collection), {args.iteration} (iteration)\n")
+    print(f"\n{args.env}: best / median of {args.repeats} (collection), {args.iteration} "
+          "(iteration)\n")  # fmt: skip
     print("| path | seeds | collection (s) | env steps/s | iteration (s) | load (1 min) |")
     print("|---|---|---|---|---|---|")
     for r in rows:
-        it = "-" if r["iteration_s"] is None else f"{r['iteration_s']:.2f}"
+        it = "-"
+        if r["iteration_s"] is not None:
+            it = f"{r['iteration_s']:.2f} / {r['iteration_median_s']:.2f}"
         load = ", ".join(f"{x:.1f}" for x in r["load_1min"])
         print(
-            f"| {r['path']} | {r['seeds']} | {r['collect_s']:.2f} | {r['env_steps_per_s']:.0f} "
-            f"| {it} | {load} |"
+            f"| {r['path']} | {r['seeds']} | {r['collect_s']:.2f} / {r['collect_median_s']:.2f} "
+            f"| {r['env_steps_per_s']:.0f} / {r['env_steps_per_s_median']:.0f} | {it} | {load} |"
         )
     if args.json:
         write_result(args.json, rows, argv, script="benchmarks/box2d_paths.py")

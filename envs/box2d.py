@@ -321,7 +321,8 @@ class Episodes:
         out = np.empty((len(flat), self.env.obs_dim), np.float32)
         with self._lock:
             for i, row in enumerate(flat):
-                out[i] = self._reset(_seed(row[0], row[1]), row[2:].tobytes(), None)
+                seed = (int(row[0]) << 16) | int(row[1])
+                out[i] = self._reset(seed, row[2:].tobytes(), None)
         return out.reshape(*rows.shape[:-1], self.env.obs_dim)
 
     def host_step(self, rows: np.ndarray) -> np.ndarray:
@@ -330,31 +331,30 @@ class Episodes:
         env = self.env
         rows = np.asarray(rows, np.float32)
         flat = rows.reshape(-1, rows.shape[-1])
-        n_params = len(env._param_names)
-        a0, h0 = _INTS + n_params, _INTS + n_params + env.action_dim
+        a0 = _INTS + len(env._param_names)
+        h0 = a0 + env.action_dim
         obs_dim = env.obs_dim
+        ints = flat[:, :_INTS].astype(np.int64)  # exact: the packed ints are < 2**24
+        seeds, reset_seeds = (ints[:, 0] << 16) | ints[:, 1], (ints[:, 4] << 16) | ints[:, 5]
+        env_actions = env.to_env_action(flat[:, a0:h0])
         out = np.zeros((len(flat), 2 * obs_dim + 2), np.float32)
         with self._lock:
             self.calls += 1
             for i, row in enumerate(flat):
-                seed, t, status = _seed(row[0], row[1]), int(row[2]), int(row[3])
-                params = row[_INTS:a0].tobytes()
-                key = (seed, params)
+                t, status = int(ints[i, 2]), int(ints[i, 3])
+                key = (int(seeds[i]), row[_INTS:a0].tobytes())
                 if status == RUNNING:
                     history = row[h0:].reshape(env.horizon, env.action_dim)
-                    episode = self._at(seed, params, t, history)
-                    obs, reward, terminated, truncated, _ = episode.env.step(
-                        env.to_env_action(row[a0:h0])
-                    )
+                    episode = self._at(key, t, history)
+                    obs, reward, terminated, truncated, _ = episode.env.step(env_actions[i])
                     episode.actions[t] = row[a0:h0]
                     episode.t = t + 1
                     status = TERMINATED if terminated else TRUNCATED if truncated else RUNNING
                     out[i, :obs_dim], out[i, obs_dim] = obs, reward
                 out[i, obs_dim + 1] = status
                 if status != RUNNING:
-                    if row[6]:  # may_reset: the env moves on to the new episode
-                        reset_seed = _seed(row[4], row[5])
-                        out[i, obs_dim + 2 :] = self._reset(reset_seed, params, key)
+                    if ints[i, 6]:  # may_reset: the env moves on to the new episode
+                        out[i, obs_dim + 2 :] = self._reset(int(reset_seeds[i]), key[1], key)
                     else:
                         self._release(key)
         return out.reshape(*rows.shape[:-1], -1)
@@ -379,19 +379,19 @@ class Episodes:
             self._free(old_key[1], old.env)
         return obs
 
-    def _at(self, seed: int, params: bytes, t: int, history: np.ndarray) -> _Episode:
-        """The live episode of (seed, params) after ``history[:t]``; replayed if not live."""
-        key = (seed, params)
+    def _at(self, key: tuple[int, bytes], t: int, history: np.ndarray) -> _Episode:
+        """The live episode ``key`` = (seed, params) after ``history[:t]``; replayed if not
+        live."""
         episode = self.live.get(key)
         if (
             episode is not None
             and episode.t == t
-            and episode.actions[:t].view(np.uint32).tobytes()
-            == history[:t].view(np.uint32).tobytes()
+            and np.array_equal(episode.actions[:t].view(np.uint32), history[:t].view(np.uint32))
         ):
             self.live.move_to_end(key)
             return episode
         self.replays += 1
+        seed, params = key
         self._reset(seed, params, None)
         episode = self.live[key]
         for j in range(t):
@@ -435,10 +435,6 @@ class Episodes:
                     gym_env.close()
             self.live.clear()
             self.free.clear()
-
-
-def _seed(hi: float, lo: float) -> int:
-    return (int(hi) << 16) | int(lo)
 
 
 def lunarlander(**kwargs: Any) -> HostEnv:
