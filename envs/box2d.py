@@ -192,7 +192,9 @@ class HostEnv(Environment):
         still stops on the non-finite losses.
         """
         center, half_range = action_center_half_range(self.action_low, self.action_high)
-        action = np.nan_to_num(np.asarray(action, np.float64))
+        action = np.asarray(action, np.float64)
+        if not np.isfinite(action).all():
+            action = np.nan_to_num(action)
         return to_env_units(action, center, half_range).astype(np.float32)
 
     # JAX side ------------------------------------------------------------------------------
@@ -290,14 +292,15 @@ class HostEnv(Environment):
 
 
 class _Episode:
-    """A live gymnasium env, ``t`` steps into the episode of (seed, params) with ``actions``."""
+    """A live gymnasium env (unwrapped: the time limit is ``host_step``'s), ``t`` steps into the
+    episode of (seed, params) with ``actions`` (flat, normalized)."""
 
-    __slots__ = ("actions", "env", "t")
+    __slots__ = ("actions", "gym", "t")
 
-    def __init__(self, env, horizon: int, action_dim: int):
-        self.env = env
+    def __init__(self, gym, horizon: int, action_dim: int):
+        self.gym = gym
         self.t = 0
-        self.actions = np.zeros((horizon, action_dim), np.float32)
+        self.actions = np.zeros(horizon * action_dim, np.float32).reshape(horizon, action_dim)
 
 
 class Episodes:
@@ -333,28 +336,30 @@ class Episodes:
         flat = rows.reshape(-1, rows.shape[-1])
         a0 = _INTS + len(env._param_names)
         h0 = a0 + env.action_dim
-        obs_dim = env.obs_dim
+        obs_dim, horizon = env.obs_dim, env.horizon
         ints = flat[:, :_INTS].astype(np.int64)  # exact: the packed ints are < 2**24
-        seeds, reset_seeds = (ints[:, 0] << 16) | ints[:, 1], (ints[:, 4] << 16) | ints[:, 5]
+        seeds = ((ints[:, 0] << 16) | ints[:, 1]).tolist()
+        reset_seeds = ((ints[:, 4] << 16) | ints[:, 5]).tolist()
+        ts, statuses, may_reset = ints[:, 2].tolist(), ints[:, 3].tolist(), ints[:, 6].tolist()
         env_actions = env.to_env_action(flat[:, a0:h0])
         out = np.zeros((len(flat), 2 * obs_dim + 2), np.float32)
         with self._lock:
             self.calls += 1
             for i, row in enumerate(flat):
-                t, status = int(ints[i, 2]), int(ints[i, 3])
-                key = (int(seeds[i]), row[_INTS:a0].tobytes())
+                t, status = ts[i], statuses[i]
+                key = (seeds[i], row[_INTS:a0].tobytes())
                 if status == RUNNING:
-                    history = row[h0:].reshape(env.horizon, env.action_dim)
-                    episode = self._at(key, t, history)
-                    obs, reward, terminated, truncated, _ = episode.env.step(env_actions[i])
+                    episode = self._at(key, t, row[h0:])
+                    obs, reward, terminated, _, _ = episode.gym.step(env_actions[i])
                     episode.actions[t] = row[a0:h0]
-                    episode.t = t + 1
-                    status = TERMINATED if terminated else TRUNCATED if truncated else RUNNING
+                    episode.t = t = t + 1
+                    # gymnasium's TimeLimit: truncated at the horizon, unless terminated
+                    status = TERMINATED if terminated else TRUNCATED if t >= horizon else RUNNING
                     out[i, :obs_dim], out[i, obs_dim] = obs, reward
                 out[i, obs_dim + 1] = status
                 if status != RUNNING:
-                    if ints[i, 6]:  # may_reset: the env moves on to the new episode
-                        out[i, obs_dim + 2 :] = self._reset(int(reset_seeds[i]), key[1], key)
+                    if may_reset[i]:  # the env moves on to the new episode
+                        out[i, obs_dim + 2 :] = self._reset(reset_seeds[i], key[1], key)
                     else:
                         self._release(key)
         return out.reshape(*rows.shape[:-1], -1)
@@ -367,41 +372,42 @@ class Episodes:
         key = (seed, params)
         if key in self.live:  # the same episode again: restart it
             if episode is not None:
-                self._free(params, episode.env)
+                self._free(params, episode.gym)
             episode = self.live.pop(key)
         if episode is None:
             episode = _Episode(self._build(params), self.env.horizon, self.env.action_dim)
-        obs, _ = episode.env.reset(seed=seed)
+        obs, _ = episode.gym.reset(seed=seed)
         episode.t = 0
         self.live[key] = episode
         while len(self.live) > MAX_LIVE:
             old_key, old = self.live.popitem(last=False)
-            self._free(old_key[1], old.env)
+            self._free(old_key[1], old.gym)
         return obs
 
     def _at(self, key: tuple[int, bytes], t: int, history: np.ndarray) -> _Episode:
-        """The live episode ``key`` = (seed, params) after ``history[:t]``; replayed if not
-        live."""
+        """The live episode ``key`` = (seed, params) after the first ``t`` actions of
+        ``history`` (flat); replayed from its reset if not live."""
+        a = self.env.action_dim
         episode = self.live.get(key)
         if (
             episode is not None
             and episode.t == t
-            and np.array_equal(episode.actions[:t].view(np.uint32), history[:t].view(np.uint32))
+            and episode.actions[:t].tobytes() == history[: t * a].tobytes()
         ):
             self.live.move_to_end(key)
             return episode
         self.replays += 1
-        seed, params = key
-        self._reset(seed, params, None)
+        self._reset(key[0], key[1], None)
         episode = self.live[key]
-        for j in range(t):
-            *_, terminated, truncated, _ = episode.env.step(self.env.to_env_action(history[j]))
-            if terminated or truncated:
+        actions = history[: t * a].reshape(t, a)
+        for j, action in enumerate(self.env.to_env_action(actions)):
+            terminated = episode.gym.step(action)[2]
+            if terminated or j + 1 >= self.env.horizon:
                 raise RuntimeError(
-                    f"{self.env.name}: replaying episode seed {seed} ended at step {j + 1} of "
+                    f"{self.env.name}: replaying episode seed {key[0]} ended at step {j + 1} of "
                     f"{t}; the state does not come from this env"
                 )
-        episode.actions[:t] = history[:t]
+        episode.actions[:t] = actions
         episode.t = t
         return episode
 
@@ -409,7 +415,7 @@ class Episodes:
         """An ended episode: its env is kept for reuse."""
         episode = self.live.pop(key, None)
         if episode is not None:
-            self._free(key[1], episode.env)
+            self._free(key[1], episode.gym)
 
     def _free(self, params: bytes, gym_env) -> None:
         pool = self.free.setdefault(params, [])
@@ -419,17 +425,18 @@ class Episodes:
             gym_env.close()
 
     def _build(self, params: bytes):
+        """An unwrapped gymnasium env of these params (reused if one is free)."""
         pool = self.free.get(params)
         if pool:
             return pool.pop()
         row = np.frombuffer(params, np.float32)
-        return self.env.make_env(**self.env.gym_kwargs(row))
+        return self.env.make_env(**self.env.gym_kwargs(row)).unwrapped
 
     def close(self) -> None:
         """Closes every env (they are rebuilt, by replay, when stepped again)."""
         with self._lock:
             for episode in self.live.values():
-                episode.env.close()
+                episode.gym.close()
             for pool in self.free.values():
                 for gym_env in pool:
                     gym_env.close()
