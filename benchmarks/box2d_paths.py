@@ -9,7 +9,9 @@
 
 For each ``--seeds`` count, with the shipped config of ``--env`` (only ``seeds`` changed), it times
 (after one warm-up call, best of ``--repeats``, the two paths interleaved so that both see the same
-background load) one iteration's collection (``steps_per_iteration`` env steps per seed) and, with
+background load) one iteration's collection (``steps_per_iteration`` env steps per seed; also the
+part of it spent inside the gymnasium env class's ``step``/``reset``, which depends on the episodes
+each path happens to play, and the rest, the path's own overhead) and, with
 ``--iteration`` (for the ``--iteration-seeds`` counts), one whole iteration (collection and
 ``updates_per_iteration`` SAC updates; the updates are the same jitted code in both). The load
 average is recorded beside each row, since other jobs may share the cores::
@@ -49,11 +51,34 @@ def _best(fn, repeats: int) -> float:
     return best
 
 
+class EnvClock:
+    """Seconds spent inside the gymnasium env class's own ``step`` and ``reset`` (patched on the
+    class, so both paths are timed alike): the rest of a collection is the path's overhead."""
+
+    def __init__(self, env_class):
+        self.seconds = 0.0
+        for name in ("step", "reset"):
+            original = getattr(env_class, name)
+
+            def timed(obj, *args, _original=original, **kwargs):
+                started = time.perf_counter()
+                try:
+                    return _original(obj, *args, **kwargs)
+                finally:
+                    self.seconds += time.perf_counter() - started
+
+            setattr(env_class, name, timed)
+
+
+CLOCKS: dict[str, EnvClock] = {}
+
+
 def measure(env: str, seeds: int, repeats: int, iteration: bool) -> list[dict]:
     cfg = config_lib.resolve(env=env, seeds=seeds)
     host_trainer, cb_trainer = Trainer(cfg), CallbackTrainer(cfg)
     from espl_jax import host
 
+    clock = CLOCKS.setdefault(env, EnvClock(type(host_trainer.env.make_env().unwrapped)))
     collector = host.HostCollector(host_trainer)
     host_state = host_trainer.init_seeds()
 
@@ -65,13 +90,14 @@ def measure(env: str, seeds: int, repeats: int, iteration: bool) -> list[dict]:
 
     def one_seed_collect(s):
         key, mask, k_collect, _ = cb_trainer.start_iteration(s.key, s.actor)
-        return cb_trainer.collect_single(s, mask, k_collect)[1]
+        return cb_trainer.collect_single(s.replace(key=key), mask, k_collect)
 
     cb_collect_fn = cb_trainer.over_seeds(one_seed_collect)
-    cb_state = cb_trainer.init_seeds()
+    cb_state = {"state": cb_trainer.init_seeds()}
 
-    def cb_collect():
-        return cb_collect_fn(cb_state)
+    def cb_collect():  # the episodes go on across calls, as the host path's do
+        cb_state["state"], metrics = cb_collect_fn(cb_state["state"])
+        return metrics
 
     timings: dict[str, dict[str, float]] = {"host": {}, "callback": {}}
     loads: dict[str, list[float]] = {"host": [], "callback": []}
@@ -80,17 +106,23 @@ def measure(env: str, seeds: int, repeats: int, iteration: bool) -> list[dict]:
         jax.block_until_ready(fn())
         timings[name]["collect_first_s"] = time.perf_counter() - started
     times: dict[str, list[float]] = {"host": [], "callback": []}
+    env_times: dict[str, list[float]] = {"host": [], "callback": []}
     for _ in range(repeats):
         for name, fn in (("host", host_collect), ("callback", cb_collect)):
             loads[name].append(os.getloadavg()[0])
+            clock.seconds = 0.0
             times[name].append(_best(fn, 1))
+            env_times[name].append(clock.seconds)
     for name, ts in times.items():
         timings[name]["collect_s"] = min(ts)
         timings[name]["collect_median_s"] = float(np.median(ts))
+        overhead = np.asarray(ts) - np.asarray(env_times[name])
+        timings[name]["env_median_s"] = float(np.median(env_times[name]))
+        timings[name]["overhead_median_s"] = float(np.median(overhead))
 
     if iteration:
         chunk = cb_trainer.compiled_chunk(1)
-        states = {"host": host_state, "callback": cb_state}
+        states = {"host": host_state, "callback": cb_state["state"]}
 
         def host_iteration():
             states["host"], metrics = collector.iteration(states["host"])
@@ -129,6 +161,10 @@ def measure(env: str, seeds: int, repeats: int, iteration: bool) -> list[dict]:
                 "collect_median_s": t["collect_median_s"],
                 "env_steps_per_s": steps / t["collect_s"],
                 "env_steps_per_s_median": steps / t["collect_median_s"],
+                # of a collection (median): inside the gymnasium env class, and the rest
+                "env_class_median_s": t["env_median_s"],
+                "overhead_median_s": t["overhead_median_s"],
+                "overhead_us_per_step": t["overhead_median_s"] / cfg.steps_per_iteration * 1e6,
                 "collect_first_s": t["collect_first_s"],
                 "iteration_s": t.get("iteration_s"),
                 "iteration_median_s": t.get("iteration_median_s"),
@@ -159,8 +195,11 @@ def main(argv: list[str] | None = None) -> None:
         rows += measure(args.env, s, args.repeats, args.iteration if s in timed else 0)
     print(f"\n{args.env}: best / median of {args.repeats} (collection), {args.iteration} "
           "(iteration)\n")  # fmt: skip
-    print("| path | seeds | collection (s) | env steps/s | iteration (s) | load (1 min) |")
-    print("|---|---|---|---|---|---|")
+    print(
+        "| path | seeds | collection (s) | env steps/s | in the env class (s) | overhead per step "
+        "(us) | iteration (s) | load (1 min) |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
     for r in rows:
         it = "-"
         if r["iteration_s"] is not None:
@@ -168,7 +207,8 @@ def main(argv: list[str] | None = None) -> None:
         load = ", ".join(f"{x:.1f}" for x in r["load_1min"])
         print(
             f"| {r['path']} | {r['seeds']} | {r['collect_s']:.2f} / {r['collect_median_s']:.2f} "
-            f"| {r['env_steps_per_s']:.0f} / {r['env_steps_per_s_median']:.0f} | {it} | {load} |"
+            f"| {r['env_steps_per_s']:.0f} / {r['env_steps_per_s_median']:.0f} "
+            f"| {r['env_class_median_s']:.2f} | {r['overhead_us_per_step']:.0f} | {it} | {load} |"
         )
     if args.json:
         write_result(args.json, rows, argv, script="benchmarks/box2d_paths.py")
