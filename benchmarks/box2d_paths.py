@@ -19,6 +19,11 @@ average is recorded beside each row, since other jobs may share the cores::
     python benchmarks/box2d_paths.py --env lunarlander --seeds 1,2,3 --iteration 2 \
         --json results/box2d_paths_lunarlander.json
 
+For a task family (``--env lunarlander_params``) it times one prior collection phase
+(``tasks_per_iteration`` tasks × ``prior_steps`` steps per seed) and PEARL's protocol on the test
+tasks instead (``host_meta.HostMetaCollector.phase`` and ``HostAdapter`` against
+``Trainer._meta_phase`` and ``Trainer.compiled_adapt``).
+
 Not part of the test suite (CI never runs ``benchmarks/``).
 """
 
@@ -33,6 +38,7 @@ import numpy as np
 from env_throughput import write_result
 
 from espl_jax import config as config_lib
+from espl_jax import envs
 from espl_jax.learner import Trainer
 
 
@@ -176,6 +182,67 @@ def measure(env: str, seeds: int, repeats: int, iteration: bool) -> list[dict]:
     return rows
 
 
+def measure_family(env: str, seeds: int, repeats: int) -> list[dict]:
+    """A task family (lunarlander_params): one prior collection phase (``prior_steps`` steps on
+    ``tasks_per_iteration`` tasks per seed) and PEARL's protocol on the test tasks, both paths."""
+    cfg = config_lib.resolve(env=env, seeds=seeds)
+    host_trainer, cb_trainer = Trainer(cfg), CallbackTrainer(cfg)
+    from espl_jax.host_meta import HostAdapter, HostMetaCollector
+
+    clock = CLOCKS.setdefault(env, EnvClock(type(host_trainer.env.make_env().unwrapped)))
+    collector = HostMetaCollector(host_trainer)
+    host_state, cb_state = host_trainer.init_seeds(), cb_trainer.init_seeds()
+    slots, steps = cb_trainer.rollout_slots, cfg.prior_steps
+    tasks = np.tile(np.arange(slots), (seeds, 1))
+    keys = jax.vmap(jax.random.fold_in, (0, None))(cb_state.key, 7)
+
+    def cb_phase_one(s, t, k):
+        return cb_trainer._meta_phase(s, t, k, steps, posterior=False, to_encoder=False)[2]
+
+    cb_phase_fn = cb_trainer.over_seeds(cb_phase_one)
+    test = cb_trainer.tasks[1]
+    adapter = HostAdapter(host_trainer, test)
+    fns = {
+        "phase": {
+            "host": lambda: collector.phase(host_state, tasks, keys, steps, False)[1],
+            "callback": lambda: cb_phase_fn(cb_state, tasks, keys),
+        },
+        "protocol": {
+            "host": lambda: adapter(host_state, keys).final_return,
+            "callback": lambda: cb_trainer.compiled_adapt(cb_state, test, keys).final_return,
+        },
+    }
+    rows = []
+    for what, by_path in fns.items():
+        for fn in by_path.values():
+            jax.block_until_ready(fn())  # compile
+        times: dict[str, list[float]] = {"host": [], "callback": []}
+        env_times: dict[str, list[float]] = {"host": [], "callback": []}
+        loads: dict[str, list[float]] = {"host": [], "callback": []}
+        for _ in range(repeats):
+            for name, fn in by_path.items():
+                loads[name].append(os.getloadavg()[0])
+                clock.seconds = 0.0
+                times[name].append(_best(fn, 1))
+                env_times[name].append(clock.seconds)
+        for name in by_path:
+            overhead = np.asarray(times[name]) - np.asarray(env_times[name])
+            rows.append(
+                {
+                    "env": env,
+                    "what": what,
+                    "path": name,
+                    "seeds": seeds,
+                    "best_s": min(times[name]),
+                    "median_s": float(np.median(times[name])),
+                    "env_class_median_s": float(np.median(env_times[name])),
+                    "overhead_median_s": float(np.median(overhead)),
+                    "load_1min": loads[name],
+                }
+            )
+    return rows
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--env", default="lunarlander")
@@ -189,6 +256,23 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--json", help="also write the rows, command and machine here")
     args = parser.parse_args(argv)
+    if envs.is_family(args.env):
+        rows = []
+        for s in (int(x) for x in args.seeds.split(",")):
+            rows += measure_family(args.env, s, args.repeats)
+        print(f"\n{args.env}: best / median of {args.repeats}\n")
+        print("| what | path | seeds | time (s) | in the env class (s) | overhead (s) | load |")
+        print("|---|---|---|---|---|---|---|")
+        for r in rows:
+            load = ", ".join(f"{x:.1f}" for x in r["load_1min"])
+            print(
+                f"| {r['what']} | {r['path']} | {r['seeds']} | {r['best_s']:.2f} / "
+                f"{r['median_s']:.2f} | {r['env_class_median_s']:.2f} "
+                f"| {r['overhead_median_s']:.2f} | {load} |"
+            )
+        if args.json:
+            write_result(args.json, rows, argv, script="benchmarks/box2d_paths.py")
+        return
     rows = []
     timed = {int(x) for x in args.iteration_seeds.split(",")}
     for s in (int(x) for x in args.seeds.split(",")):
