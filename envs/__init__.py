@@ -90,11 +90,6 @@ def register(name: str, factory: EnvFactory) -> None:
     KNOWN_ENVS = tuple(sorted(_REGISTRY))
 
 
-def is_host(env: Environment) -> bool:
-    """Whether ``env`` is a gymnasium Box2D env (``HostEnv``)."""
-    return isinstance(env, HostEnv)
-
-
 def make(name: str, **kwargs) -> Environment:
     """Builds a registered environment.
 
@@ -160,7 +155,6 @@ __all__ = [
     "Pendulum",
     "TaskFamily",
     "is_family",
-    "is_host",
     "make",
     "make_family",
     "register",

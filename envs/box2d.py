@@ -172,15 +172,6 @@ class HostEnv(Environment):
             self.env_id, max_episode_steps=self.horizon, **{**self.kwargs, **kwargs}
         )
 
-    def make_vector_env(self, num_envs: int):
-        """``num_envs`` envs in a ``SyncVectorEnv`` with same-step autoreset (``espl_jax.host``)."""
-        import gymnasium
-
-        return gymnasium.vector.SyncVectorEnv(
-            [self.make_env for _ in range(num_envs)],
-            autoreset_mode=gymnasium.vector.AutoresetMode.SAME_STEP,
-        )
-
     def gym_kwargs(self, row: np.ndarray) -> dict[str, float]:
         """The ``gymnasium.make`` keywords of one params row (``flat_params``)."""
         return {k: float(v) for k, v in zip(self._param_names, row, strict=True)}

@@ -1,4 +1,7 @@
-"""Collection and evaluation in JAX envs, for one task at a time (the trainer vmaps over tasks).
+"""Collection, evaluation and PEARL's protocol, for one task at a time (the trainer vmaps over
+seeds and tasks): the one rollout path of every env, written against ``envs.Environment``. The
+JAX envs step inside the program; the host-stepped ones (MuJoCo's C engine, gymnasium's Box2D)
+through one host callback per env step for the whole vmapped batch.
 
 - ``collect``: K env steps of the exploring policy with auto-reset (Algorithm 1 lines 5–7,
   Algorithm 2 lines 6–10). ESPL draws its Bernoulli mask once per iteration and continues its
@@ -12,8 +15,8 @@
   trajectory; actions are deterministic (CSP: the formula of p > 0.5); the return of the last
   trajectory is reported.
 
-Only ``terminated`` is stored in transitions; at a time-limit end the stored next_obs is the true
-next observation, not the reset one.
+Only ``terminated`` is stored in transitions; at an episode end (time limit or not) the stored
+next_obs is the true final observation, not the reset one (``Environment.step_autoreset``).
 """
 
 from __future__ import annotations
@@ -68,7 +71,7 @@ def explore(
     The action is tanh(μ + σ ε). With ``exploration_correlation`` ρ > 0, ε is an AR(1) process,
     ε_t = ρ ε_{t−1} + √(1−ρ²) ξ_t: still N(0, 1) at every step, so the policy's distribution per
     step is unchanged, but successive pushes agree for ~1/(1−ρ) steps (temporally correlated
-    exploration; ρ = 0 is plain SAC). The JAX and host collectors both act through this.
+    exploration; ρ = 0 is plain SAC).
     """
     eps = rho * eps + math.sqrt(1.0 - rho**2) * jax.random.normal(key, eps.shape)
     return actor.act_with_noise(policy, mask, obs, eps), eps
@@ -129,7 +132,8 @@ def collect(
 def evaluate(
     env, actor: Actor, policy: TaskPolicy, mask: Any, task_params: Any, key: jax.Array, episodes
 ) -> jax.Array:
-    """Returns [episodes] of deterministic episodes of a fixed task policy (and mask)."""
+    """Returns [episodes] of deterministic episodes of a fixed task policy (and mask): a scan of
+    ``horizon`` steps, rewards counted until each episode's end (later steps are ignored)."""
     k_reset, k_run = jax.random.split(key)
     obs, env_state = jax.vmap(env.reset, (0, None))(
         jax.random.split(k_reset, episodes), task_params
