@@ -284,7 +284,7 @@ class HostEnv(Environment):
 
 class _Episode:
     """A live gymnasium env (unwrapped: the time limit is ``host_step``'s), ``t`` steps into the
-    episode of (seed, params) with ``actions`` (flat, normalized)."""
+    episode of (seed, params), after ``actions[:t]`` (normalized, (horizon, action_dim))."""
 
     __slots__ = ("actions", "gym", "t")
 
