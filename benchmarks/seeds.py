@@ -71,8 +71,6 @@ def time_chunk(cfg: config.Config, iterations: int, repeats: int) -> dict[str, A
     # Build the env outside any trace, as run.train does: an MJX env first built inside
     # init_seeds' jit would keep tracers of its model (cached_property).
     trainer.env  # noqa: B018
-    if trainer.on_host:
-        raise SystemExit(f"{cfg.env} is stepped on the host: no compiled chunk to time")
     state = trainer.init_seeds()
     warmup_s = None
     if trainer.meta:

@@ -35,9 +35,9 @@ from espl_jax.envs.classic import CartPole, MountainCar, Pendulum
 from espl_jax.envs.physics import PHYSICS, with_physics
 from espl_jax.envs.tasks import TaskFamily
 
-# A registry entry builds either a functional JAX env or, for the Box2D tasks, a ``HostEnv``: a
-# description of a gymnasium env that the trainer steps on the host (see envs/box2d.py).
-EnvFactory = Callable[..., Environment | HostEnv]
+# A registry entry builds a functional env: in JAX, or stepped on the host behind the same
+# interface (MuJoCo's C engine, envs/native.py; gymnasium's Box2D envs, envs/box2d.py).
+EnvFactory = Callable[..., Environment]
 
 
 def _mjx_factory(name: str) -> EnvFactory:
@@ -62,7 +62,7 @@ _REGISTRY: dict[str, EnvFactory] = {
     "inverted_double_pendulum": _mjx_factory("inverted_double_pendulum"),
     "inverted_pendulum_swingup": _mjx_factory("inverted_pendulum_swingup"),
     "walker2d": _mjx_factory("walker2d"),
-    # gymnasium Box2D envs, stepped on the host (envs/box2d.py)
+    # gymnasium Box2D envs, stepped on the host through callbacks (envs/box2d.py)
     "bipedalwalker": box2d.bipedalwalker,
     "lunarlander": box2d.lunarlander,
 }
@@ -90,12 +90,7 @@ def register(name: str, factory: EnvFactory) -> None:
     KNOWN_ENVS = tuple(sorted(_REGISTRY))
 
 
-def is_host(env: Environment | HostEnv) -> bool:
-    """Whether ``env`` is stepped on the host (gymnasium) rather than in JAX."""
-    return isinstance(env, HostEnv)
-
-
-def make(name: str, **kwargs) -> Environment | HostEnv:
+def make(name: str, **kwargs) -> Environment:
     """Builds a registered environment.
 
     Args:
@@ -103,8 +98,7 @@ def make(name: str, **kwargs) -> Environment | HostEnv:
         **kwargs: forwarded to the env's factory (e.g. ``horizon=200``).
 
     Returns:
-        The environment instance: an ``Environment`` (JAX), or a ``HostEnv`` for the gymnasium
-        Box2D envs (``is_host``).
+        The environment instance (for the gymnasium Box2D envs a ``HostEnv``).
 
     Raises:
         ValueError: ``name`` is not registered; the message lists the known env names and the
@@ -161,7 +155,6 @@ __all__ = [
     "Pendulum",
     "TaskFamily",
     "is_family",
-    "is_host",
     "make",
     "make_family",
     "register",

@@ -12,13 +12,17 @@ and ``state`` (physics state plus the step counter ``t``)::
 
 ``action`` is normalized to [-1, 1] per dimension; ``step`` clips it and scales it linearly to the
 env's own bounds ``[action_low, action_high]``. ``terminated`` is a true end (no bootstrap),
-``truncated`` is the time limit (``t >= horizon`` and not terminated). ``step`` never auto-resets.
+``truncated`` is the time limit (``t >= horizon`` and not terminated). ``step`` never auto-resets;
+``step_autoreset`` is a step followed, where the episode ended, by a reset (what collection and
+PEARL's protocol step with, ``espl_jax/rollout.py``). What ``step`` does after an episode's end is
+the env's own: the JAX envs go on simulating, the Box2D envs (``envs/box2d.py``) stay put; the
+rollouts ignore those steps either way.
 """
 
 from __future__ import annotations
 
 import abc
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -28,6 +32,29 @@ PRNGKey = jax.Array
 EnvParams = Any
 EnvState = Any
 StepOutput = tuple[jax.Array, Any, jax.Array, jax.Array, jax.Array, dict[str, jax.Array]]
+
+
+class Stepped(NamedTuple):
+    """One step with auto-reset (``Environment.step_autoreset``).
+
+    Attributes:
+        obs: float32 (obs_dim,), the observation the step ended in: at an episode end the true
+            final one, never the reset one.
+        reward: float32 ().
+        terminated: bool (), a true end.
+        truncated: bool (), the time limit.
+        reset: bool (), a new episode began after this step.
+        next_obs: where the agent goes on: ``obs``, or the new episode's first observation.
+        next_state: the state to step next (the new episode's where ``reset``).
+    """
+
+    obs: jax.Array
+    reward: jax.Array
+    terminated: jax.Array
+    truncated: jax.Array
+    reset: jax.Array
+    next_obs: jax.Array
+    next_state: Any
 
 
 class Environment(abc.ABC):
@@ -44,8 +71,11 @@ class Environment(abc.ABC):
         horizon: time limit; ``truncated`` becomes true at ``t == horizon``.
         action_low: numpy float array (action_dim,), lower action bound in the env's own units.
         action_high: numpy float array (action_dim,), upper action bound in the env's own units.
+        simulator: what simulates it, as a run's eval.json reports (``evaluated_in``): ``"jax"``,
+            or ``"gymnasium"`` for the Box2D envs.
     """
 
+    simulator: str = "jax"
     name: str
     obs_dim: int
     action_dim: int
@@ -86,6 +116,33 @@ class Environment(abc.ABC):
             ``(obs, state, reward, terminated, truncated, info)``: obs float32 (obs_dim,), the next
             state, reward float32 (), terminated and truncated bool (), info a dict.
         """
+
+    def step_autoreset(
+        self,
+        key: PRNGKey,
+        reset_key: PRNGKey,
+        state: EnvState,
+        action: jax.Array,
+        params: EnvParams,
+        may_reset: jax.Array | None = None,
+    ) -> Stepped:
+        """``step``, then ``reset`` (with ``reset_key``) where the episode ended and
+        ``may_reset`` (None: wherever it ended).
+
+        This default evaluates ``reset`` at every step and selects it with ``jnp.where``, which
+        is what a JAX env costs least with. Host-stepped envs override it with one host call
+        that resets only the lanes that ended (``envs/box2d.py``).
+        """
+        obs, next_state, reward, terminated, truncated, _ = self.step(key, state, action, params)
+        reset_obs, reset_state = self.reset(reset_key, params)
+        reset = terminated | truncated
+        if may_reset is not None:
+            reset = reset & may_reset
+        return Stepped(
+            obs, reward, terminated, truncated, reset,
+            jnp.where(reset, reset_obs, obs),
+            jax.tree.map(lambda x, y: jnp.where(reset, x, y), reset_state, next_state),
+        )  # fmt: skip
 
     def scale_action(self, action: jax.Array) -> jax.Array:
         """Clips a normalized action to [-1, 1] and maps it linearly onto the env's bounds

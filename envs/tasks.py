@@ -21,7 +21,7 @@ Families (the registry ``FAMILIES``; ``envs.make_family(name)``):
 * ``invdoublepend_params``, ``hopper_params``, ``walker2d_params``: the MJX envs with
   rand_param_envs' per-element multipliers on masses, inertias, damping and friction.
 * ``cheetah_vel_ood``: HalfCheetah with a target velocity (OOD test).
-* ``lunarlander_params``: gymnasium's LunarLanderContinuous with random gravity (host env).
+* ``lunarlander_params``: gymnasium's LunarLanderContinuous with random gravity (Box2D).
 
 MJX and gymnasium are imported only when a family is built, so ``from espl_jax import envs``
 stays cheap.
@@ -37,11 +37,10 @@ from typing import Any, Literal
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 
 from espl_jax.envs import box2d
 from espl_jax.envs.base import Environment, PRNGKey
-from espl_jax.envs.box2d import HostEnv
+from espl_jax.envs.box2d import LunarLanderParams
 from espl_jax.envs.classic import CartPole, CartPoleParams
 from espl_jax.envs.physics import with_physics
 
@@ -117,8 +116,8 @@ class TaskFamily:
 
     Attributes:
         name: registry name, e.g. ``"hopper_params"``.
-        env: the underlying env, built with the family's horizon (``Environment``, or
-            ``HostEnv`` for gymnasium's Box2D tasks).
+        env: the underlying ``Environment``, built with the family's horizon (for gymnasium's
+            Box2D tasks a ``HostEnv``, envs/box2d.py).
         n_train: number of meta-training tasks.
         n_test: number of meta-test tasks.
         use_next_obs_in_context: whether the context encoder sees s' (PEARL's
@@ -127,7 +126,7 @@ class TaskFamily:
     """
 
     name: str
-    env: Environment | HostEnv
+    env: Environment
     n_train: int
     n_test: int
     use_next_obs_in_context: bool = True
@@ -339,17 +338,6 @@ class CheetahVelOOD(TaskFamily):
 # --------------------------------------------------------------------------------------------
 
 
-@struct.dataclass
-class LunarLanderParams:
-    """The task of ``lunarlander_params``.
-
-    Attributes:
-        gravity: float32 (), Box2D world gravity in m/s^2 (negative; gymnasium's default -10).
-    """
-
-    gravity: jax.Array
-
-
 @dataclass(frozen=True)
 class LunarLanderGravity(TaskFamily):
     """``lunarlander_params``: gymnasium's LunarLanderContinuous with a random gravity per task.
@@ -364,8 +352,9 @@ class LunarLanderGravity(TaskFamily):
     full throttle still accelerates it upwards: from reset, vertical velocity -0.50 -> +0.03 in
     40 steps, vs -0.49 -> +0.13 at -10).
 
-    The env is stepped on the host: ``host_kwargs(params, i)`` gives the ``gymnasium.make``
-    kwargs of task ``i``, for ``family.env.make_env(**kwargs)``.
+    The env is gymnasium's, stepped on the host (``envs/box2d.py``): a task's params are the
+    ``gymnasium.make`` keywords of its env; ``host_kwargs(params, i)`` gives those of task ``i``,
+    for ``family.env.make_env(**kwargs)`` (the reference env of its policy.py).
 
     Draw: ``gravity = jax.random.uniform(key_split, (n,), minval=-11, maxval=-5)``.
 

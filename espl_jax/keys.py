@@ -20,8 +20,8 @@ Salts folded into each seed's ``TrainState.key`` (``salted``), one stream each:
                          meta-RL: PEARL's protocol on training tasks (chooses it)
     REPORT         3     single-task: the reported final episodes (eval.json);     run, meta_report
                          meta-RL: PEARL's protocol on the test tasks
-    HOST_RESET     4     gymnasium env seeds of a host collector's (re)start       host
-    HOST_WARMUP    5     gymnasium meta-RL: PEARL's initial collection             host_meta
+    (retired)      4, 5  the gymnasium env seeds of the former host collectors     RETIRED_SALTS
+                         (``espl_jax/host.py``, ``host_meta.py``); not to be reused
 
 Salts folded into a sub-key (a different key from the above, so the values may repeat):
 
@@ -57,8 +57,7 @@ import numpy as np
 PROGRESS_EVAL = 1
 SELECTION = 2
 REPORT = 3
-HOST_RESET = 4
-HOST_WARMUP = 5
+RETIRED_SALTS = (4, 5)
 
 POSTERIOR_DRAW = 1
 ENCODER = 1

@@ -19,8 +19,9 @@ latent z from PEARL's encoder, and per-task buffers. One *iteration*:
 3. ``updates_per_iteration`` SAC steps in one ``lax.scan`` (``espl_jax.sac``).
 
 A *chunk* is a ``lax.scan`` over iterations, compiled once and ``vmap``-ed over seeds; the host
-runs between chunks (``espl_jax.run``). Host-stepped gymnasium envs (Box2D) replace step 2 by
-``espl_jax.host`` and reuse the rest.
+runs between chunks (``espl_jax.run``). Every env steps through the same collection, evaluation
+and protocol (``espl_jax.rollout``): the JAX envs inside the program, the host-stepped ones
+(MuJoCo's C engine, gymnasium's Box2D) through one host callback per env step for the batch.
 """
 
 from __future__ import annotations
@@ -144,12 +145,6 @@ class Trainer:
     def meta(self) -> bool:
         return self.family is not None
 
-    @property
-    def on_host(self) -> bool:
-        """The env is a gymnasium env stepped on the host (Box2D): collection and evaluation run
-        in :mod:`espl_jax.host`."""
-        return envs.is_host(self.env)
-
     @cached_property
     def tasks(self) -> tuple[Any, Any]:
         """(train, test) task params with a leading task axis. Single-task: the env's default
@@ -159,7 +154,7 @@ class Trainer:
             if self.meta:
                 train, test = self.family.tasks(self.config.task_seed)
                 return jax.tree.map(np.asarray, train), jax.tree.map(np.asarray, test)
-            params = None if self.on_host else _stack(self.env.default_params)
+            params = _stack(self.env.default_params)
         return params, params
 
     @property
@@ -209,26 +204,14 @@ class Trainer:
     # State ---------------------------------------------------------------------------------
 
     def init(self, key: jax.Array) -> TrainState:
-        """A fresh TrainState for one seed. ``key`` is a raw uint32[2] key (checkpointable).
-
-        For a host env there is no env state in JAX: ``env_state`` is None and ``obs`` zeros
-        until the host collector resets its envs (see :mod:`espl_jax.host`).
-        """
+        """A fresh TrainState for one seed. ``key`` is a raw uint32[2] key (checkpointable)."""
         cfg, env = self.config, self.env
         key, k_learner, k_reset = jax.random.split(key, 3)
         slots = self.rollout_slots
-        if self.on_host:  # the host collector owns the envs; these are placeholders
-            state = Rollout(
-                None,
-                jnp.zeros((slots, env.obs_dim)),
-                jnp.zeros((slots,)),
-                jnp.zeros((slots, env.action_dim)),
-            )
-        else:
-            params = jax.tree.map(lambda x: x[:slots], self.tasks[0])
-            state = jax.vmap(lambda k, p: rollout.reset(env, p, k, env.action_dim))(
-                task_keys(k_reset, slots), params
-            )
+        params = jax.tree.map(lambda x: x[:slots], self.tasks[0])
+        state = jax.vmap(lambda k, p: rollout.reset(env, p, k, env.action_dim))(
+            task_keys(k_reset, slots), params
+        )
         tasks = self.num_train_tasks
         encoder_buffer = None
         if self.meta:
@@ -343,8 +326,8 @@ class Trainer:
         finished_returns: jax.Array,
         steps: int,
     ) -> tuple[TrainState, Metrics]:
-        """The state and metrics after collection (shared by the JAX and host collectors);
-        ``done`` and ``finished_returns`` cover every collected step (any shape)."""
+        """The state and metrics after collection; ``done`` and ``finished_returns`` cover every
+        collected step (any shape)."""
         finished = jnp.sum(done)
         state = state.replace(
             rollout=rollout_state,
@@ -558,7 +541,7 @@ class Trainer:
         """jit(vmap(chunk)) over the leading seed axis; the state buffers are donated."""
         return self.over_seeds(lambda s: self.chunk(s, length), donate=True)
 
-    # Evaluation in JAX -----------------------------------------------------------------------
+    # Evaluation ---------------------------------------------------------------------------------
 
     def evaluate(self, actor_params: dict, key: jax.Array, episodes: int) -> jax.Array:
         """Single task: returns of ``episodes`` deterministic episodes of the eval-mask policy

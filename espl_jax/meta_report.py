@@ -50,11 +50,7 @@ FRESH_EPISODES = 20
 
 def adapter(trainer: Trainer, task_params: Any):
     """Meta-RL: PEARL's protocol on ``task_params`` [N], (state [S], keys [S, 2]) -> Adapted
-    [S, N, runs]; in JAX, or on the host for gymnasium families."""
-    if trainer.on_host:
-        from espl_jax.host_meta import HostAdapter
-
-        return HostAdapter(trainer, task_params)
+    [S, N, runs]."""
     return lambda state, keys: trainer.compiled_adapt(state, task_params, keys)
 
 
@@ -114,7 +110,7 @@ def finish(
         },
         "test": {"mean": float(test_returns[best].mean()), "per_task": per_task},
         "train": {"mean": float(train_returns[best].mean()), "tasks": n},
-        "evaluated_in": "gymnasium" if trainer.on_host else "jax",
+        "evaluated_in": trainer.env.simulator,
         "per_seed": [
             {
                 "seed": s,
@@ -181,12 +177,10 @@ def _fresh_episodes(
     policy_files: list[Path],
     warnings: list[str],
 ) -> None:
-    """Each adapted formula, fixed, on ``FRESH_EPISODES`` new episodes of its task (in JAX); for
-    cartpole_fl_ood also its policy.py in the numpy reference CartPole with the task's physics."""
+    """Each adapted formula, fixed, on ``FRESH_EPISODES`` new episodes of its task (the training
+    env); where the family has a reference env (cartpole_fl_ood: the numpy CartPole;
+    lunarlander_params: gymnasium's), also its policy.py there with the task's params."""
     env, actor = trainer.env, trainer.actor
-    if trainer.on_host:  # a gymnasium family: its policy.py files in gymnasium, per task
-        _fresh_policy_py(trainer, result, policy_files, warnings)
-        return
     params = one_seed(state.actor, best)
     zs = jnp.asarray([entry["z"] for entry in result["test"]["per_task"]])
 
@@ -209,15 +203,11 @@ def _fresh_policy_py(
 ) -> None:
     """Each test task's policy.py on fresh episodes of the reference env with the task's params
     (numpy CartPole for cartpole_fl_ood; gymnasium's LunarLander for lunarlander_params)."""
-    family = trainer.family
 
     def reference() -> None:
         returns_all = []
-        test_params = trainer.tasks[1]
-        for i, (entry, path) in enumerate(
-            zip(result["test"]["per_task"], policy_files, strict=True)
-        ):
-            kwargs = family.host_kwargs(test_params, i) if trainer.on_host else entry["params"]
+        for entry, path in zip(result["test"]["per_task"], policy_files, strict=True):
+            kwargs = entry["params"]  # the task's params in the env's units (describe)
             policy = reference_eval.load_policy(path)
             returns = reference_eval.rollout_returns(
                 policy.act, trainer.config.env, FRESH_EPISODES, REFERENCE_FIRST_EPISODE, **kwargs

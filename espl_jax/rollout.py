@@ -1,4 +1,7 @@
-"""Collection and evaluation in JAX envs, for one task at a time (the trainer vmaps over tasks).
+"""Collection, evaluation and PEARL's protocol, for one task at a time (the trainer vmaps over
+seeds and tasks): the one rollout path of every env, written against ``envs.Environment``. The
+JAX envs step inside the program; the host-stepped ones (MuJoCo's C engine, gymnasium's Box2D)
+through one host callback per env step for the whole vmapped batch.
 
 - ``collect``: K env steps of the exploring policy with auto-reset (Algorithm 1 lines 5–7,
   Algorithm 2 lines 6–10). ESPL draws its Bernoulli mask once per iteration and continues its
@@ -12,8 +15,8 @@
   trajectory; actions are deterministic (CSP: the formula of p > 0.5); the return of the last
   trajectory is reported.
 
-Only ``terminated`` is stored in transitions; at a time-limit end the stored next_obs is the true
-next observation, not the reset one.
+Only ``terminated`` is stored in transitions; at an episode end (time limit or not) the stored
+next_obs is the true final observation, not the reset one (``Environment.step_autoreset``).
 """
 
 from __future__ import annotations
@@ -68,7 +71,7 @@ def explore(
     The action is tanh(μ + σ ε). With ``exploration_correlation`` ρ > 0, ε is an AR(1) process,
     ε_t = ρ ε_{t−1} + √(1−ρ²) ξ_t: still N(0, 1) at every step, so the policy's distribution per
     step is unchanged, but successive pushes agree for ~1/(1−ρ) steps (temporally correlated
-    exploration; ρ = 0 is plain SAC). The JAX and host collectors both act through this.
+    exploration; ρ = 0 is plain SAC).
     """
     eps = rho * eps + math.sqrt(1.0 - rho**2) * jax.random.normal(key, eps.shape)
     return actor.act_with_noise(policy, mask, obs, eps), eps
@@ -109,23 +112,15 @@ def collect(
             part, mask = where(fresh, draw(episode), (part, mask))
         policy = actor.policy(actor_params, part)
         action, eps = explore(actor, rho, policy, mask, r.obs, r.exploration_noise, k_act)
-        next_obs, next_state, reward, terminated, truncated, _ = env.step(
-            k_env, r.env_state, action, task_params
-        )
-        done = terminated | truncated
-        reset_obs, reset_state = env.reset(k_reset, task_params)
-        ep_return = r.episode_return + reward
+        s = env.step_autoreset(k_env, k_reset, r.env_state, action, task_params)
+        done = s.reset  # every ended episode is reset
+        ep_return = r.episode_return + s.reward
         out = (
-            Transition(r.obs, action, reward, next_obs, terminated),
+            Transition(r.obs, action, s.reward, s.obs, s.terminated),
             done,
             jnp.where(done, ep_return, 0.0),
         )
-        r = Rollout(
-            where(done, reset_state, next_state),
-            jnp.where(done, reset_obs, next_obs),
-            jnp.where(done, 0.0, ep_return),
-            eps,
-        )
+        r = Rollout(s.next_state, s.next_obs, jnp.where(done, 0.0, ep_return), eps)
         return (r, part, mask, done, episode + done.astype(jnp.int32)), out
 
     keys = jax.random.split(key, steps)
@@ -137,7 +132,8 @@ def collect(
 def evaluate(
     env, actor: Actor, policy: TaskPolicy, mask: Any, task_params: Any, key: jax.Array, episodes
 ) -> jax.Array:
-    """Returns [episodes] of deterministic episodes of a fixed task policy (and mask)."""
+    """Returns [episodes] of deterministic episodes of a fixed task policy (and mask): a scan of
+    ``horizon`` steps, rewards counted until each episode's end (later steps are ignored)."""
     k_reset, k_run = jax.random.split(key)
     obs, env_state = jax.vmap(env.reset, (0, None))(
         jax.random.split(k_reset, episodes), task_params
@@ -203,28 +199,30 @@ def adapt_and_evaluate(
         active = c["active"]
         policy = actor.policy(actor_params, c["part"])
         action = actor.deterministic(policy, c["mask"], c["obs"])
-        next_obs, next_state, reward, terminated, truncated, _ = env.step(
-            k_env, c["env_state"], action, task_params
-        )
+        # A trajectory that ends within the budget is followed by another (``again``).
+        s = env.step_autoreset(
+            k_env, k_reset, c["env_state"], action, task_params,
+            may_reset=active & (c["steps"] + 1 < eval_steps),
+        )  # fmt: skip
+        reward, next_obs = s.reward, s.obs
         mu, var = encoder.factors(
-            encoder_params, Transition(c["obs"], action, reward, next_obs, terminated)
+            encoder_params, Transition(c["obs"], action, reward, next_obs, s.terminated)
         )
         posterior = c["posterior"].add(mu, var, jnp.where(active, 1.0, 0.0))
         ep_return = c["ep_return"] + jnp.where(active, reward, 0.0)
         steps = c["steps"] + active.astype(jnp.int32)
-        ended = active & (terminated | truncated)
+        ended = active & (s.terminated | s.truncated)
         trajectories = c["trajectories"] + ended.astype(jnp.int32)
-        again = ended & (steps < eval_steps)
+        again = s.reset  # = ended & (steps < eval_steps)
         # The next trajectory's z: the posterior once enough trajectories exist, else the prior.
         post_mu, post_var = posterior.gaussian()
         use_posterior = trajectories >= exploration_trajectories
         noise = jax.random.normal(k_z, (latent,))
         new_z = jnp.where(use_posterior, post_mu + jnp.sqrt(post_var) * noise, noise)
         new_part, new_mask = task_policy(new_z)
-        reset_obs, reset_state = env.reset(k_reset, task_params)
         c = dict(
-            env_state=where(again, reset_state, next_state),
-            obs=jnp.where(again, reset_obs, next_obs),
+            env_state=s.next_state,
+            obs=s.next_obs,
             ep_return=jnp.where(again, 0.0, ep_return),
             steps=steps,
             trajectories=trajectories,

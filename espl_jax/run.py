@@ -3,14 +3,12 @@
 Between compiled chunks the host logs metrics, draws the progress bar, evaluates the deterministic
 policy for the learning curve, and checkpoints. At the end it exports each seed's formula, picks
 the best seed by evaluating the exported formula, and writes the run directory (its files and how
-they are written: :mod:`espl_jax.rundir`). For host-stepped gymnasium envs (Box2D) the chunks and
-evaluations come from :mod:`espl_jax.host` instead of the compiled ones (``chunk_runner``,
-``evaluator``); the run directory is the same.
+they are written: :mod:`espl_jax.rundir`). Every env, host-stepped ones included (MuJoCo's C
+engine, gymnasium's Box2D), runs through the same compiled chunks and evaluations.
 """
 
 from __future__ import annotations
 
-import contextlib
 import itertools
 import tempfile
 import time
@@ -22,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from espl_jax import checkpoint, faults, host, meta_report, reference_eval, replay, rundir, runlock
+from espl_jax import checkpoint, faults, meta_report, reference_eval, replay, rundir, runlock
 from espl_jax import config as config_lib
 from espl_jax import expression as ex
 from espl_jax import halloffame as hof
@@ -114,8 +112,6 @@ def train(
     # Fail fast on an unknown env or too many devices, before anything is written.
     trainer.env  # noqa: B018
     trainer.mesh  # noqa: B018
-    if jax.process_count() > 1 and trainer.on_host:
-        raise UserError(f"{config.env} is stepped in gymnasium on the host: it runs in one process")
     if jax.process_index() != 0:  # process 0 holds the run directory for the whole group
         return _train(trainer, run_dir, resume, show_progress, stop_after)
     run_dir.mkdir(parents=True, exist_ok=True)  # resume: it exists (config.yaml was read)
@@ -160,7 +156,7 @@ def _train(
     end = config.iterations if stop_after is None else min(stop_after, config.iterations)
     started = time.perf_counter()
     warnings: list[str] = []
-    run_chunk, close = chunk_runner(trainer)
+    run_chunk = chunk_runner(trainer)
     progress_eval = progress_evaluator(trainer)
     bar = tqdm(
         total=config.iterations,
@@ -169,7 +165,7 @@ def _train(
         unit="it",
         disable=not show_progress or not primary,
     )
-    with checkpoint.manager(run_dir / rundir.CHECKPOINT_DIR) as mngr, close:
+    with checkpoint.manager(run_dir / rundir.CHECKPOINT_DIR) as mngr:
         if not resume:  # a run killed before its first chunk ends resumes from here
             checkpoint.save(mngr, 0, state)
         if start == 0 and trainer.meta:  # PEARL's initial collection on every training task
@@ -178,7 +174,7 @@ def _train(
         while iteration < end:
             length = min(config.chunk_iterations, end - iteration)
             new_state, metrics = run_chunk(state, length)
-            # JAX envs: the chunk is still running (dispatch is asynchronous); host envs: done.
+            # The chunk is still running (dispatch is asynchronous).
             faults.kill_point(f"chunk:{iteration + length}")
             metrics = gather(metrics)
             diverged = _non_finite(metrics, iteration)
@@ -250,9 +246,14 @@ def restore(run_dir: str | Path, trainer: Trainer) -> tuple[int, TrainState]:
     so a run extended with ``--resume --iterations`` stored a smaller buffer than its new config
     builds: it is restored with the stored capacity and padded (``replay.resize``; such a buffer
     never wrapped), which makes the extended run equal to one planned that long from the start.
+
+    A Box2D checkpoint written before the Box2D envs held their episodes in the state (its
+    rollout has no env state) resumes as such runs did then: from freshly reset envs, the
+    episodes in progress dropped.
     """
     template = trainer.init_seeds()
     capacity = trainer.buffer_capacity
+    fresh_rollout = False
 
     def with_capacity(state: TrainState, n: int) -> TrainState:
         if state.buffer.data.reward.shape[-1] == n:  # [seeds, tasks, capacity]
@@ -260,27 +261,23 @@ def restore(run_dir: str | Path, trainer: Trainer) -> tuple[int, TrainState]:
         return state.replace(buffer=jax.vmap(lambda b: replay.resize(b, n))(state.buffer))
 
     def like(stored: dict) -> TrainState:
+        nonlocal fresh_rollout
         stored_capacity = stored["buffer"]["data"]["reward"].shape[-1]  # [seeds, tasks, cap]
-        return with_capacity(template, stored_capacity)
+        state = with_capacity(template, stored_capacity)
+        if stored["rollout"].get("env_state") is None and state.rollout.env_state is not None:
+            fresh_rollout = True
+            state = state.replace(rollout=state.rollout.replace(env_state=None))
+        return state
 
     step, state = checkpoint.restore_latest(Path(run_dir) / rundir.CHECKPOINT_DIR, like)
+    if fresh_rollout:
+        state = state.replace(rollout=template.rollout)
     return step, trainer.place(with_capacity(state, capacity))
 
 
-def chunk_runner(trainer: Trainer) -> tuple[Any, contextlib.AbstractContextManager]:
-    """``(run_chunk, closer)``: ``run_chunk(state, length) -> (state, metrics [S, length])``.
-
-    JAX envs: one compiled ``Trainer.compiled_chunk`` per chunk length. Host (Box2D) envs: the
-    host collector of :mod:`espl_jax.host`, whose gymnasium envs ``closer`` closes on exit.
-    """
-    if trainer.on_host:
-        if trainer.meta:
-            from espl_jax.host_meta import HostMetaCollector
-
-            collector = HostMetaCollector(trainer)
-        else:
-            collector = host.HostCollector(trainer)
-        return collector.chunk, contextlib.closing(collector)
+def chunk_runner(trainer: Trainer):
+    """``run_chunk(state, length) -> (state, metrics [S, length])``: one compiled
+    ``Trainer.compiled_chunk`` per chunk length."""
     compiled: dict[int, Any] = {}
 
     def run_chunk(state: TrainState, length: int):
@@ -288,7 +285,7 @@ def chunk_runner(trainer: Trainer) -> tuple[Any, contextlib.AbstractContextManag
             compiled[length] = trainer.compiled_chunk(length)
         return compiled[length](state)
 
-    return run_chunk, contextlib.nullcontext()
+    return run_chunk
 
 
 def progress_evaluator(trainer: Trainer):
@@ -303,24 +300,14 @@ def progress_evaluator(trainer: Trainer):
 
 
 def warmup(trainer: Trainer, state: TrainState) -> TrainState:
-    """Meta-RL: PEARL's initial collection (in JAX, or on the host for gymnasium families)."""
-    if trainer.on_host:
-        from espl_jax.host_meta import HostMetaCollector
-
-        state = HostMetaCollector(trainer).warmup(state)
-    else:
-        state = trainer.compiled_warmup()(state)
-    faults.kill_point("warmup")  # nothing of it is written yet (JAX: it may still be running)
+    """Meta-RL: PEARL's initial collection."""
+    state = trainer.compiled_warmup()(state)
+    faults.kill_point("warmup")  # nothing of it is written yet (it may still be running)
     return state
 
 
 def evaluator(trainer: Trainer, episodes: int):
-    """(actor params [S, ...], keys [S, 2]) -> returns [S, episodes] of the eval-mask policy.
-
-    In JAX for JAX envs, in gymnasium on the host for host (Box2D) envs.
-    """
-    if trainer.on_host:
-        return host.HostEvaluator(trainer, episodes)
+    """(actor params [S, ...], keys [S, 2]) -> returns [S, episodes] of the eval-mask policy."""
     return trainer.compiled_evaluate(episodes)
 
 
@@ -373,8 +360,8 @@ def finish(
     result: dict[str, Any] = {
         **rundir.result_header(trainer, state, best, train_seconds),
         "jax_eval": per_seed[best]["jax_eval"],
-        # where "jax_eval" ran: JAX envs in JAX, host (Box2D) envs in gymnasium
-        "evaluated_in": "gymnasium" if trainer.on_host else "jax",
+        # what simulated "jax_eval": "jax", or "gymnasium" for the Box2D envs
+        "evaluated_in": env.simulator,
         "per_seed": per_seed,
     }
     if best in formulas:

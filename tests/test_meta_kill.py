@@ -10,11 +10,9 @@ eval.json (but its wall-clock field), tasks.json and test_tasks/ files.
 
 Both families are held to that, bit for bit. For cartpole_fl_ood (stepped in JAX) the whole
 simulator state is in the checkpoint. lunarlander_params is stepped in gymnasium (Box2D) on the
-host, whose simulator state is not checkpointed (``espl_jax.host``): a resumed single-task Box2D
-run continues from freshly reset envs and is reproducible but not equal to an uninterrupted one.
-A meta-RL family has no such state to lose: ``host_meta`` rebuilds and reseeds its envs from the
-state's keys at the start of every collection phase and protocol run, so nothing of the simulator
-outlives a phase, and its resumed run is equal too.
+host through the same rollout path; its checkpoint holds what determines each episode in
+progress (reset seed, params, actions so far: ``envs/box2d.py``), which the resumed process
+replays, so its resumed run is equal too.
 
 Slow: 6 min (cartpole_fl_ood) and 10 min (lunarlander_params) on a 2-core CPU shared with another
 training run; the uninterrupted run compiles, the killed ones load its programs from the cache.

@@ -30,14 +30,14 @@ def test_salts_keep_the_values_every_earlier_run_used():
     # host_meta.py, meta.py (now meta_report.py), trainer.py (now learner.py) and sac.py before
     # they got names.
     assert (keys.PROGRESS_EVAL, keys.SELECTION, keys.REPORT) == (1, 2, 3)
-    assert (keys.HOST_RESET, keys.HOST_WARMUP) == (4, 5)
+    assert keys.RETIRED_SALTS == (4, 5)  # the former host collectors' (host.py, host_meta.py)
     assert (keys.POSTERIOR_DRAW, keys.ENCODER) == (1, 1)
     assert (keys.FRESH_EPISODES_OFFSET, keys.COEFFICIENTS_OFFSET) == (10_000, 20_000)
     assert (keys.REFERENCE_FIRST_EPISODE, keys.EVALUATE_FIRST_EPISODE) == (0, 10_000)
 
 
 def test_salts_of_the_state_key_are_distinct():
-    salts = [keys.PROGRESS_EVAL, keys.SELECTION, keys.REPORT, keys.HOST_RESET, keys.HOST_WARMUP]
+    salts = [keys.PROGRESS_EVAL, keys.SELECTION, keys.REPORT, *keys.RETIRED_SALTS]
     assert len(set(salts)) == len(salts)
 
 

@@ -134,9 +134,6 @@ def test_counts_shapes_and_horizon(name):
     assert (fam.n_train, fam.n_test) == COUNTS[name]
     assert fam.name == name
     assert fam.env.horizon == (1000 if name == "lunarlander_params" else 200)
-    if envs.is_host(fam.env):
-        assert train.gravity.shape == (fam.n_train,) and test.gravity.shape == (fam.n_test,)
-        return
     # exactly the env's params pytree, each leaf with a leading task axis
     default = fam.env.default_params
     assert jax.tree.structure(train) == jax.tree.structure(default)
@@ -429,7 +426,7 @@ def test_invdoublepend_params_change_the_trajectory():
 
 
 # --------------------------------------------------------------------------------------------
-# lunarlander_params (gymnasium, on the host)
+# lunarlander_params (gymnasium's Box2D)
 # --------------------------------------------------------------------------------------------
 
 
