@@ -123,16 +123,18 @@ def seed_rows(run_dir: Path, first_seed: int) -> list[dict]:
     return rows
 
 
+def block_of(run_dir: Path) -> list[int]:
+    """The seeds of a run directory named by ``run_dir_for``."""
+    lo, _, hi = run_dir.name.rsplit("-s", 1)[1].partition("-")
+    return list(range(int(lo), int(hi or lo) + 1))
+
+
 def existing_runs(out: Path, env: str, variant: str) -> dict[int, Path]:
     """Seeds already finished in ``out`` by earlier blocks (so a sweep can be widened)."""
     found: dict[int, Path] = {}
     for run_dir in out.glob(f"{env}-{variant}-s*"):
-        if not (run_dir / "eval.json").is_file():
-            continue
-        tail = run_dir.name.rsplit("-s", 1)[1]
-        lo, _, hi = tail.partition("-")
-        for s in range(int(lo), int(hi or lo) + 1):
-            found[s] = run_dir
+        if (run_dir / "eval.json").is_file():
+            found.update(dict.fromkeys(block_of(run_dir), run_dir))
     return found
 
 
@@ -169,8 +171,7 @@ def main(argv: list[str] | None = None) -> None:
             run_dir = run_block(args.env, variant, table[variant], block, args.out)
             done.update({s: run_dir for s in block})
         for run_dir in sorted(set(done.values())):
-            first = int(run_dir.name.rsplit("-s", 1)[1].partition("-")[0])
-            for row in seed_rows(run_dir, first):
+            for row in seed_rows(run_dir, block_of(run_dir)[0]):
                 if row["seed"] not in seeds:
                     continue
                 row = {"env": args.env, "variant": variant, "changes": table[variant], **row}
