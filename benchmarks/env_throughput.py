@@ -209,6 +209,9 @@ def write_result(
         commit=commit or None,
         date=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         machine=machine(),
+        # The 1-, 5- and 15-minute load averages when the file was written: on 2 cores anything
+        # else running changes the figures.
+        load_average=[round(x, 2) for x in os.getloadavg()],
         rows=rows,
     )
     Path(path).parent.mkdir(parents=True, exist_ok=True)

@@ -96,28 +96,31 @@ def measure(env: str, actor: str, updates: int, repeats: int, physics: str = "au
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--env", default="cartpole_fl_ood")
+    parser.add_argument(
+        "--env", default="cartpole_fl_ood", help="an env or family, or several, comma-separated"
+    )
     parser.add_argument("--actors", default="symbolic,pearl,hyper")
     parser.add_argument("--physics", default="auto", help="comma-separated: auto, mjx, native")
     parser.add_argument("--updates", type=int, default=50)
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--json", help="also write the rows, command and machine here")
     args = parser.parse_args(argv)
-    rows = [
-        measure(args.env, a, args.updates, args.repeats, p)
-        for a in args.actors.split(",")
-        for p in args.physics.split(",")
-    ]
-    print(f"\n{args.env}, {args.updates} updates per timed call, best of {args.repeats}\n")
+    rows = []
+    for env in args.env.split(","):
+        for a in args.actors.split(","):
+            for p in args.physics.split(","):
+                rows.append(measure(env, a, args.updates, args.repeats, p))
+                print(rows[-1], flush=True)
+    print(f"\n{args.updates} updates per timed call, best of {args.repeats}\n")
     print(
-        "| actor | physics | collection / iteration (s) | updates / iteration (s) "
+        "| env | actor | physics | collection / iteration (s) | updates / iteration (s) "
         "| protocol on the test tasks (s) | compile: collect, updates, protocol (s) |"
     )
-    print("|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|")
     for r in rows:
         updates_s = r["update_ms"] * r["updates_per_iteration"] / 1000
         print(
-            f"| {r['actor']} | {r['physics'] or '-'} | {r['collect_s']:.2f} "
+            f"| {r['env']} | {r['actor']} | {r['physics'] or '-'} | {r['collect_s']:.2f} "
             f"({r['steps_per_iteration']} env steps) | {updates_s:.2f} "
             f"({r['updates_per_iteration']} × {r['update_ms']:.1f} ms) | {r['adapt_s']:.1f} "
             f"| {r['collect_compile_s']:.0f}, {r['updates_compile_s']:.0f}, "
