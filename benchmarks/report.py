@@ -655,11 +655,82 @@ def planned_plots(results: list[Result]) -> list[str]:
     return out
 
 
+# The README's physics table (issue 31): env steps/s per backend and batch, and the cost of one
+# iteration per backend, each from one results file measured in one run on one machine.
+PHYSICS_STEPS = "env_throughput_backends.json"
+PHYSICS_COST = "iteration_cost_backends.json"
+
+
+def physics_headline(results: list[Result], link: str) -> str:
+    by_name = {r.name: r for r in results}
+    out = []
+    steps = by_name.get(PHYSICS_STEPS)
+    if steps is not None:
+        rate = {(r["env"], r["physics"], r["batch"]): r["steps_per_s"] for r in steps.rows}
+        backends = list(dict.fromkeys(r["physics"] for r in steps.rows))
+        batches = sorted({r["batch"] for r in steps.rows})
+        header = ["env steps/s", *(f"{p}, batch {' / '.join(map(str, batches))}" for p in backends)]
+        rows = []
+        for env in dict.fromkeys(r["env"] for r in steps.rows):
+            cells = [
+                " / ".join(f"{rate.get((env, p, b), 0):.0f}" for b in batches) for p in backends
+            ]
+            rows.append([env, *cells])
+        out.append(table(header, rows))
+        out.append(f"\n{load_line(steps, link)}\n\n")
+    cost = by_name.get(PHYSICS_COST)
+    if cost is not None:
+        backends = list(dict.fromkeys(r["physics"] for r in cost.rows))
+        by = {(r["env"], r["physics"]): r for r in cost.rows}
+        pair = " / ".join(backends)
+        header = [
+            "one iteration, shipped budget",
+            f"collection (s): {pair}",
+            f"updates (s): {pair}",
+            f"compile (s): {pair}",
+        ]
+        rows = []
+        for env in dict.fromkeys(r["env"] for r in cost.rows):
+            rs = [by.get((env, p)) for p in backends]
+            if any(r is None for r in rs):
+                continue
+            collect = " / ".join(f"{r['collect_s']:.2f}" for r in rs)
+            updates = " / ".join(
+                f"{r['update_ms'] * r['updates_per_iteration'] / 1000:.2f}" for r in rs
+            )
+            compile_s = " / ".join(f"{compile_seconds(r):.0f}" for r in rs)
+            rows.append(
+                [f"{env} ({rs[0]['steps_per_iteration']} env steps)", collect, updates, compile_s]
+            )
+        out.append(table(header, rows))
+        out.append(f"\n{load_line(cost, link)}\n")
+    return "".join(out)
+
+
+def compile_seconds(row: dict) -> float:
+    """A cost row's compile time: collection, updates and (meta-RL) the protocol."""
+    parts = (row.get("collect_compile_s"), row.get("updates_compile_s"), row.get("adapt_compile_s"))
+    return sum(x for x in parts if x is not None and x == x)  # NaN: no protocol
+
+
+def load_line(res: Result, link: str) -> str:
+    m = res.data.get("machine") or {}
+    load = res.data.get("load_average")
+    where = f"{m.get('cpus')} CPUs ({m.get('jax_backend')})" if m else "—"
+    if load:
+        where += f", load average {' / '.join(fmt(x) for x in load)} at the end"
+    return (
+        f"`{res.data.get('command', '')}` at `{res.data.get('commit')}`; {where}. "
+        f"[data]({link}#{anchor(res.title)})"
+    )
+
+
 def readme_text(readme: str, results: list[Result]) -> str:
     """The README with its headline tables between the marker comments regenerated."""
     for name, build, page in (
         ("single_task", single_headline, PAGES["single_task"]),
         ("meta_rl", meta_headline, PAGES["meta_rl"]),
+        ("physics", physics_headline, PAGES["throughput"]),
     ):
         start, end = START.format(name), END.format(name)
         if start not in readme or end not in readme:
