@@ -68,11 +68,10 @@ def measure(env: str, seeds: int, repeats: int, iterations: int) -> dict:
     trainer = Trainer(cfg)
     clock = CLOCKS.setdefault(env, EnvClock(type(trainer.env.make_env().unwrapped)))
 
-    def one_seed_collect(s):
-        key, mask, k_collect, _ = trainer.start_iteration(s.key, s.actor)
-        return trainer.collect_single(s.replace(key=key), mask, k_collect)
+    def one_seed_collect(s):  # an iteration's collection (the update key is dropped)
+        return trainer.task_set.collect(trainer.actor, s)[:2]
 
-    collect_fn = trainer.over_seeds(one_seed_collect)
+    collect_fn = trainer.seed_axis.over_seeds(one_seed_collect)
     holder = {"state": trainer.init_seeds()}
 
     def collect():  # the episodes go on across calls

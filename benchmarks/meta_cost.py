@@ -60,19 +60,16 @@ def measure(env: str, actor: str, updates: int, repeats: int, physics: str = "au
     key = jax.random.PRNGKey(1)
     keys = key[None]
 
-    def collect_one(s, k):
-        if trainer.meta:
-            return trainer.collect_meta(s, k)[0]
-        _, mask, k_collect, _ = trainer.start_iteration(k, s.actor)
-        return trainer.collect_single(s, mask, k_collect)[0]
+    def collect_one(s, k):  # an iteration's collection, on the task set of the run
+        return trainer.task_set.collect(trainer.actor, s.replace(key=k))[0]
 
-    collect = trainer.over_seeds(collect_one)
+    collect = trainer.seed_axis.over_seeds(collect_one)
     c_first, c_best, state = _timed(collect, state, keys, repeats=repeats)
 
     def learn(s, k):
-        return trainer.learn(s, {}, k)[0]
+        return trainer.iteration.learn(s, {}, k)[0]
 
-    learn = trainer.over_seeds(learn)
+    learn = trainer.seed_axis.over_seeds(learn)
     u_first, u_best, _ = _timed(learn, state, keys, repeats=repeats)
 
     a_first = a_best = float("nan")
@@ -90,7 +87,7 @@ def measure(env: str, actor: str, updates: int, repeats: int, physics: str = "au
         "updates_compile_s": u_first - u_best,
         "adapt_s": a_best,
         "adapt_compile_s": a_first - a_best,
-        "steps_per_iteration": trainer.steps_per_iteration,
+        "steps_per_iteration": trainer.task_set.steps_per_iteration,
     }
 
 

@@ -41,6 +41,11 @@ Params = dict[str, Any]
 TaskPolicy = dict[str, Any]
 
 
+def no_latent() -> jax.Array:
+    """The z of a single-task run's policy: (0,)."""
+    return jnp.zeros((0,))
+
+
 def _mean_abs(arrays: list[jax.Array]) -> jax.Array:
     """mean |x| over every entry of a list of arrays (the L1 terms on w and b)."""
     return jnp.mean(jnp.abs(jnp.concatenate([a.ravel() for a in arrays])))
@@ -88,6 +93,17 @@ class Actor:
 
     @property
     def uses_selector(self) -> bool:
+        return False
+
+    @property
+    def one_formula(self) -> bool:
+        """The learned params are one formula for every task (ESPL), so a run can keep the best
+        one it has seen (the hall of fame, ``espl_jax.halloffame``)."""
+        return False
+
+    @property
+    def freezes_mask(self) -> bool:
+        """The kind has learned path probabilities to freeze for fine-tuning (``freeze``)."""
         return False
 
     def init(self, key: jax.Array) -> Params:
@@ -213,6 +229,14 @@ class StoredSymbolic(Actor):
     @property
     def uses_selector(self) -> bool:
         return self.config.selector == "probabilistic"
+
+    @property
+    def one_formula(self) -> bool:
+        return True
+
+    @property
+    def freezes_mask(self) -> bool:
+        return self.uses_selector
 
     def init(self, key: jax.Array) -> Params:
         k_mean, k_std = jax.random.split(key)

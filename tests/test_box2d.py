@@ -211,7 +211,7 @@ def test_meta_collection_and_protocol_on_lunarlander_params_step_the_batch_toget
     the one rollout path (``Trainer.warmup``, ``collect_meta``, ``adapt``): one host call per env
     step for all seeds × tasks (× runs), the tasks' gravity in each env."""
     trainer = Trainer(config_lib.from_mapping(LUNAR_META))
-    env, n = trainer.env, trainer.num_train_tasks
+    env, n = trainer.env, trainer.task_set.num_train
     state = trainer.init_seeds()
 
     def calls(fn, *args):
@@ -223,7 +223,10 @@ def test_meta_collection_and_protocol_on_lunarlander_params_step_the_batch_toget
     assert warm_calls == 30  # 2 seeds × 40 tasks per call
     np.testing.assert_array_equal(state.buffer.size, np.full((2, n), 30))
     (state, metrics), phase_calls = calls(
-        trainer.over_seeds(lambda s: trainer.collect_meta(s, s.key)), state
+        trainer.seed_axis.over_seeds(
+            lambda s: trainer.task_set.collect_tasks(trainer.actor, s, s.key)
+        ),
+        state,
     )
     assert phase_calls == 20 + 25  # prior and posterior phase, 2 seeds × 3 tasks per call
     assert np.asarray(state.buffer.size).sum() == 2 * (n * 30 + 3 * 45)

@@ -84,7 +84,7 @@ def meta_trainer():
 
 def test_warmup_fills_both_buffers_of_every_training_task(meta_trainer):
     trainer, warm = meta_trainer
-    n = trainer.num_train_tasks
+    n = trainer.task_set.num_train
     np.testing.assert_array_equal(warm.buffer.size, [30] * n)
     np.testing.assert_array_equal(warm.encoder_buffer.size, [30] * n)
     assert int(warm.env_steps) == 30 * n
@@ -97,13 +97,14 @@ def test_an_iteration_clears_the_visited_encoder_buffers_and_refills_them_with_p
     meta_trainer,
 ):
     trainer, warm = meta_trainer
-    state, _ = jax.jit(trainer.collect_meta)(warm, jax.random.PRNGKey(4))
+    collect = jax.jit(lambda s, k: trainer.task_set.collect_tasks(trainer.actor, s, k))
+    state, _ = collect(warm, jax.random.PRNGKey(4))
     rl_size, enc_size = np.asarray(state.buffer.size), np.asarray(state.encoder_buffer.size)
     visited = np.flatnonzero(rl_size > 30)
     assert len(visited) == 3  # distinct tasks
     np.testing.assert_array_equal(rl_size[visited], 30 + 20 + 25)  # prior + posterior
     np.testing.assert_array_equal(enc_size[visited], 20)  # cleared, then prior data only
-    others = np.setdiff1d(np.arange(trainer.num_train_tasks), visited)
+    others = np.setdiff1d(np.arange(trainer.task_set.num_train), visited)
     np.testing.assert_array_equal(rl_size[others], 30)
     np.testing.assert_array_equal(enc_size[others], 30)
     for t in visited:  # the encoder buffer holds exactly the prior phase of the RL buffer
@@ -118,7 +119,7 @@ def test_an_iteration_clears_the_visited_encoder_buffers_and_refills_them_with_p
 
 def test_one_meta_update_trains_the_encoder_through_the_critic(meta_trainer):
     trainer, warm = meta_trainer
-    tau, l_min = trainer.schedules(jnp.asarray(0))
+    tau, l_min = trainer.iteration.schedules(jnp.asarray(0))
     new, metrics = jax.jit(trainer.sac.update)(warm, jax.random.PRNGKey(1), tau, l_min)
     assert np.isfinite(float(metrics["kl"])) and float(metrics["kl"]) >= 0
     moved = jax.tree.map(lambda a, b: float(jnp.abs(a - b).max()), new.encoder, warm.encoder)
