@@ -19,12 +19,12 @@ includes the collection's share). "ratio" is s / iteration over that of the firs
 seed, one task): S vmapped seeds cost S x one seed when the ratio is S, and are free when it is 1.
 
 Tasks mode varies ``meta_batch``, the number of tasks whose buffers every SGD step samples (RL
-batch and context per task, PEARL's meta batch; ``espl_jax/sac.py``, ``SAC.sample_batch``). It
-is the task axis of the update (the batch of the critic and actor losses is meta_batch x
-batch_size transitions); the tasks collected on per iteration (``tasks_per_iteration``) and the
-number of training tasks (the family's ``n_train``) stay the config's. Meta-RL states need
-PEARL's initial collection before the first iteration: ``espl_jax.run.warmup`` runs once per
-row, timed apart ("warm-up (s)", compile included).
+batch and context per task, PEARL's meta batch; ``espl_jax/task_sets.py``,
+``MetaTasks.sample_batch``). It is the task axis of the update (the batch of the critic and
+actor losses is meta_batch x batch_size transitions); the tasks collected on per iteration
+(``tasks_per_iteration``) and the number of training tasks (the family's ``n_train``) stay the
+config's. Meta-RL states need PEARL's initial collection before the first iteration:
+``espl_jax.run.warmup`` runs once per row, timed apart ("warm-up (s)", compile included).
 
 ``--updates``, ``--steps`` (single task: ``steps_per_iteration``; meta-RL: ``prior_steps`` +
 ``posterior_steps`` per visited task, split as the config splits them) and ``--initial-steps``

@@ -44,9 +44,9 @@ class TracingSAC(SAC):
         new, metrics = super().update(state, key, tau, l_min, frozen)
         # The same batch and context the update drew (same key split as SAC.update).
         k_batch = jax.random.split(key, 3)[0]
-        batch, context = self.sample_batch(state, k_batch)
+        batch, context = self.tasks.sample_batch(state, k_batch, self.config.batch_size)
         metrics["reward_abs_max"] = jnp.max(jnp.abs(batch.reward))
-        if self.meta:
+        if self.encoder is not None:
             mu, _ = jax.vmap(self.encoder.posterior, (None, 0))(state.encoder, context)
             metrics["z_mu_abs_mean"] = jnp.mean(jnp.abs(mu))
             metrics["z_mu_abs_max"] = jnp.max(jnp.abs(mu))
@@ -80,7 +80,7 @@ class TracingTrainer(Trainer):
 
     @cached_property
     def sac(self) -> SAC:
-        return TracingSAC(self.config, self.actor, self.encoder, self.task_set.num_train)
+        return TracingSAC(self.config, self.actor, self.task_set)
 
     @cached_property
     def iteration(self) -> Iteration:

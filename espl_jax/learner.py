@@ -133,7 +133,7 @@ class Trainer:
 
     @cached_property
     def sac(self) -> SAC:
-        return SAC(self.config, self.actor, self.encoder, self.task_set.num_train)
+        return SAC(self.config, self.actor, self.task_set)
 
     @cached_property
     def iteration(self) -> Iteration:

@@ -91,6 +91,15 @@ class SingleTask:
     def encoder_buffer(self, obs_dim: int, action_dim: int) -> None:
         return None
 
+    def sample_batch(self, state: TrainState, key: jax.Array, batch_size: int):
+        """An update's RL batch [1, B, ...] of the one task; no context."""
+        tasks = jnp.zeros((1,), jnp.int32)
+        return replay.sample(state.buffer, tasks, task_keys(key, 1), batch_size), None
+
+    def latents(self, encoder: Any, context: Any, key: jax.Array, tasks: int):
+        """A (tasks, 0) z and no KL."""
+        return jnp.zeros((tasks, 0)), jnp.zeros(())
+
     def start_iteration(self, actor: Actor, key: jax.Array, actor_params: dict):
         """ESPL's iteration randomness: (next state key, Bernoulli mask, collect key, update
         key). The mask is Algorithm 1, line 4; one mask serves the whole collection."""
@@ -137,8 +146,8 @@ class MetaTasks:
         family: the ``envs.TaskFamily``.
         task_seed: the seed of its task draws.
         encoder: PEARL's context encoder (its ``latent_dim`` is the latent's).
-        tasks_per_iteration, prior_steps, posterior_steps, initial_steps, context_batch,
-            task_buffer_size, exploration_correlation: the config's keys.
+        tasks_per_iteration, prior_steps, posterior_steps, initial_steps, meta_batch,
+            context_batch, task_buffer_size, exploration_correlation: the config's keys.
     """
 
     family: Any
@@ -148,6 +157,7 @@ class MetaTasks:
     prior_steps: int
     posterior_steps: int
     initial_steps: int
+    meta_batch: int
     context_batch: int
     task_buffer_size: int
     exploration_correlation: float
@@ -192,6 +202,24 @@ class MetaTasks:
     def encoder_buffer(self, obs_dim: int, action_dim: int) -> replay.ReplayBuffer:
         capacity = max(self.initial_steps, self.prior_steps)
         return replay.init(self.num_train, capacity, obs_dim, action_dim)
+
+    def sample_batch(self, state: TrainState, key: jax.Array, batch_size: int):
+        """An update's (RL batch [meta_batch, B, ...], context [meta_batch, C, ...]) of
+        ``meta_batch`` tasks drawn with replacement (PEARL)."""
+        k_tasks, k_rl, k_context = jax.random.split(key, 3)
+        n = self.meta_batch
+        tasks = jax.random.randint(k_tasks, (n,), 0, self.num_train)
+        batch = replay.sample(state.buffer, tasks, jax.random.split(k_rl, n), batch_size)
+        context = replay.sample(
+            state.encoder_buffer, tasks, jax.random.split(k_context, n), self.context_batch
+        )
+        return batch, context
+
+    def latents(self, encoder: Any, context: Any, key: jax.Array, tasks: int):
+        """z ~ q(z | c) per task (reparameterised) and Σ_tasks KL(q ‖ N(0, I))."""
+        mu, var = jax.vmap(self.encoder.posterior, (None, 0))(encoder, context)
+        z = pearl.sample(key, mu, var)
+        return z, jnp.sum(pearl.kl_to_standard_normal(mu, var))
 
     def draws(self, actor: Actor, params: dict, mu: jax.Array, var: jax.Array, key: jax.Array):
         """The policies of a phase's trajectories, drawn up front: ``DRAWS_PER_PHASE`` latents
@@ -328,6 +356,7 @@ def task_set(config: Config, env: Any, family: Any) -> TaskSet:
         prior_steps=config.prior_steps,
         posterior_steps=config.posterior_steps,
         initial_steps=config.initial_steps,
+        meta_batch=config.meta_batch,
         context_batch=config.context_batch,
         task_buffer_size=config.task_buffer_size,
         exploration_correlation=rho,

@@ -30,6 +30,7 @@ from espl_jax import checkpoint, envs, faults, reference_eval, replay, rollout, 
 from espl_jax import config as config_lib
 from espl_jax.policies import MLPActor, tanh_gaussian_log_prob
 from espl_jax.sac import SAC, TrainState
+from espl_jax.task_sets import SingleTask
 
 REPO = Path(__file__).resolve().parent.parent
 pytestmark = pytest.mark.usefixtures("jax_cache")
@@ -416,12 +417,16 @@ def test_mlp_actor_run_has_no_formula(tmp_path):
 # SAC, replay and the policy distribution: unit checks without training -----------------------
 
 
+# The update's view of a single task (its batches, its (0,) latent): no env needed.
+ONE_TASK = SingleTask(env=None, steps_per_iteration=0, buffer_capacity=0, exploration_correlation=0)
+
+
 def _mlp_sac(**overrides):
     cfg = config_lib.from_mapping(
         {"actor": "mlp", "critic_hidden": [16, 16], "std_hidden": [8], "mlp_actor_hidden": [8],
          **overrides}
     )  # fmt: skip
-    return SAC(cfg, MLPActor(cfg, obs_dim=4, action_dim=1), encoder=None, num_tasks=1)
+    return SAC(cfg, MLPActor(cfg, obs_dim=4, action_dim=1), ONE_TASK)
 
 
 def test_critic_target_bootstraps_unless_terminated():
