@@ -31,10 +31,11 @@ import numpy as np
 import yaml
 
 from espl_jax import checkpoint, rundir
+from espl_jax import config as config_lib
 from espl_jax import run as run_lib
 from espl_jax.iteration import Iteration
 from espl_jax.learner import Trainer
-from espl_jax.sac import SAC
+from espl_jax.sac import SAC, SACConfig
 
 
 class TracingSAC(SAC):
@@ -80,7 +81,7 @@ class TracingTrainer(Trainer):
 
     @cached_property
     def sac(self) -> SAC:
-        return TracingSAC(self.config, self.actor, self.task_set)
+        return TracingSAC(config_lib.view(SACConfig, self.config), self.actor, self.task_set)
 
     @cached_property
     def iteration(self) -> Iteration:

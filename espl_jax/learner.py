@@ -25,11 +25,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from espl_jax import envs, pearl, replay, rollout
-from espl_jax.config import Config, UserError
+from espl_jax.config import Config, UserError, view
 from espl_jax.iteration import Iteration
 from espl_jax.keys import seed_keys
 from espl_jax.policies import META_ACTORS, SINGLE_TASK_ACTORS, Actor, make_actor, no_latent
-from espl_jax.sac import SAC, TrainState, task_keys
+from espl_jax.sac import SAC, SACConfig, TrainState, task_keys
 from espl_jax.seeds import SeedAxis
 from espl_jax.task_sets import TaskSet, task_set
 
@@ -133,7 +133,7 @@ class Trainer:
 
     @cached_property
     def sac(self) -> SAC:
-        return SAC(self.config, self.actor, self.task_set)
+        return SAC(view(SACConfig, self.config), self.actor, self.task_set)
 
     @cached_property
     def iteration(self) -> Iteration:

@@ -292,7 +292,7 @@ def progress_evaluator(trainer: Trainer):
     """(state [S], keys [S, 2]) -> returns [S, n] for the learning curve after each chunk:
     single task, ``progress_eval_episodes`` episodes of the exported formula; meta-RL, PEARL's
     protocol on every test task (the last trajectory's return, averaged over runs)."""
-    if trainer.meta:
+    if trainer.meta:  # the two reports (below, finish): a family's test tasks, a task's formula
         adapt = meta_report.adapter(trainer, trainer.tasks[1])
         return lambda state, keys: gather(adapt(state, keys).final_return).mean(axis=-1)
     evaluate = evaluator(trainer, trainer.config.progress_eval_episodes)
@@ -327,7 +327,7 @@ def finish(
     # Every seed on every process, as numpy (the replay buffers stay behind); the jitted
     # evaluations below take numpy input and shard it over the devices again.
     state = gather(state.replace(buffer=None, encoder_buffer=None))
-    if trainer.meta:
+    if trainer.meta:  # a family's report is per test task (meta_report); a single task's per seed
         return meta_report.finish(trainer, state, run_dir, train_seconds, list(warnings or []))
     cfg, env = trainer.config, trainer.env
     warnings = list(warnings or [])

@@ -37,11 +37,31 @@ import optax
 from flax import struct
 
 from espl_jax import pearl, replay
-from espl_jax.config import Config
 from espl_jax.networks import TwinQ
 from espl_jax.policies import Actor
 
 Metrics = dict[str, jax.Array]
+
+
+@dataclass(frozen=True)
+class SACConfig:
+    """The config keys the update reads (``espl_jax.config.Config`` documents each)."""
+
+    batch_size: int
+    learning_rate: float
+    gamma: float
+    reward_scale: float
+    polyak: float
+    alpha: float
+    auto_alpha: bool
+    critic: str
+    critic_hidden: tuple[int, ...]
+    critic_layer_norm: bool
+    crossq_momentum: float
+    crossq_warmup: int
+    penalty_scale: float
+    select_scale: float
+    kl_weight: float
 
 
 @struct.dataclass
@@ -105,12 +125,12 @@ class SAC:
     """Static parts of the algorithm: networks, optimizers and hyperparameters.
 
     Attributes:
-        config: the run's config.
+        config: the keys of the run's config the update reads.
         actor: the policy kind.
         tasks: the task set the batches and latents come from.
     """
 
-    config: Config
+    config: SACConfig
     actor: Actor
     tasks: TaskBatches
 

@@ -23,7 +23,7 @@ from espl_jax import checkpoint, envs, reference_eval, rollout, run, rundir
 from espl_jax import config as config_lib
 from espl_jax.envs.reference import reference_env
 from espl_jax.learner import Trainer
-from espl_jax.policies import MLPActor
+from espl_jax.policies import MLPActor, PolicyConfig
 
 pytestmark = pytest.mark.usefixtures("jax_cache")
 GYMNASIUM = {
@@ -82,7 +82,7 @@ def _collect(name: str, steps: int, horizon: int, seeds: int = 2):
     (drawn, as the env does, from each step's reset key)."""
     cfg = config_lib.from_mapping({**TINY_MLP, "env": name})
     env = envs.make(name, horizon=horizon)
-    actor = MLPActor(cfg, env.obs_dim, env.action_dim)
+    actor = MLPActor(config_lib.view(PolicyConfig, cfg), env.obs_dim, env.action_dim)
     params = actor.init(jax.random.PRNGKey(0))
     start_keys = jax.random.split(jax.random.PRNGKey(2), seeds)
     keys = jax.random.split(jax.random.PRNGKey(1), seeds)

@@ -12,8 +12,8 @@ from espl_jax import config as config_lib
 from espl_jax import replay
 from espl_jax.learner import Trainer
 from espl_jax.networks import BatchRenorm, TwinQ
-from espl_jax.policies import MLPActor
-from espl_jax.sac import SAC, TrainState
+from espl_jax.policies import MLPActor, PolicyConfig
+from espl_jax.sac import SAC, SACConfig, TrainState
 from espl_jax.task_sets import SingleTask
 
 
@@ -83,7 +83,8 @@ def _crossq_state(**overrides):
         {"actor": "mlp", "critic": "crossq", "critic_hidden": [16, 16], "std_hidden": [8],
          "mlp_actor_hidden": [8], "crossq_warmup": 0, **overrides}
     )  # fmt: skip
-    sac = SAC(cfg, MLPActor(cfg, obs_dim=4, action_dim=1), ONE_TASK)
+    actor = MLPActor(config_lib.view(PolicyConfig, cfg), obs_dim=4, action_dim=1)
+    sac = SAC(config_lib.view(SACConfig, cfg), actor, ONE_TASK)
     learner = sac.init_learner(jax.random.PRNGKey(0))
     learner["log_alpha"] = jnp.asarray(-0.7)
     state = TrainState(

@@ -20,7 +20,7 @@ from espl_jax import expression as ex
 from espl_jax import pearl, reference_eval, rollout
 from espl_jax.envs.base import Environment
 from espl_jax.learner import Trainer
-from espl_jax.policies import Actor, GeneratedSymbolic
+from espl_jax.policies import Actor, GeneratedSymbolic, PolicyConfig
 from espl_jax.replay import Transition
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -207,7 +207,9 @@ def test_protocol_adapts_to_the_task_from_its_own_context():
 
 def test_csp_export_equals_the_generated_network_at_z(tmp_path):
     cfg = config_lib.from_mapping({"env": "cartpole_fl_ood", "layout": "csp"})
-    actor = GeneratedSymbolic(cfg, obs_dim=4, action_dim=1, latent_dim=5)
+    actor = GeneratedSymbolic(
+        config_lib.view(PolicyConfig, cfg), obs_dim=4, action_dim=1, latent_dim=5
+    )
     params = actor.init(jax.random.PRNGKey(0))
     # Ψ's last bias decides most paths whatever z is: a sparse formula that exports quickly.
     rng = np.random.default_rng(1)
@@ -235,9 +237,16 @@ def test_csp_bias_l1_adds_scale_times_mean_abs_generated_bias():
     """``bias_l1_scale`` on CSP: the extra loss grows by scale · mean |Φ_b(z)|, and its gradient
     reaches Φ_b's params (the generator, not a stored bias)."""
     base = {"env": "cartpole_fl_ood", "layout": "csp"}
-    plain = GeneratedSymbolic(config_lib.from_mapping(base), obs_dim=4, action_dim=1, latent_dim=5)
+    plain = GeneratedSymbolic(
+        config_lib.view(PolicyConfig, config_lib.from_mapping(base)),
+        obs_dim=4,
+        action_dim=1,
+        latent_dim=5,
+    )
     cfg = config_lib.from_mapping({**base, "bias_l1_scale": 2.0})
-    actor = GeneratedSymbolic(cfg, obs_dim=4, action_dim=1, latent_dim=5)
+    actor = GeneratedSymbolic(
+        config_lib.view(PolicyConfig, cfg), obs_dim=4, action_dim=1, latent_dim=5
+    )
     assert actor.has_extra_loss
     params = actor.init(jax.random.PRNGKey(0))
     z = jax.random.normal(jax.random.PRNGKey(1), (5,))
