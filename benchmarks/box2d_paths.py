@@ -1,7 +1,7 @@
 """How fast the one rollout path steps a Box2D env (gymnasium on the host, ``envs/box2d.py``).
 
 The Box2D env is a functional ``Environment`` whose step is one ``jax.pure_callback`` per env step
-for the whole seed batch, inside the compiled ``lax.scan`` of ``Trainer.collect_single``. For each
+for the whole seed batch, inside the compiled ``lax.scan`` of ``SingleTask.collect``. For each
 ``--seeds`` count, with the shipped config of ``--env`` (only ``seeds`` changed), this times (after
 one warm-up call, best and median of ``--repeats``) one iteration's collection
 (``steps_per_iteration`` env steps per seed), the part of it spent inside the gymnasium env

@@ -4,10 +4,10 @@ For an env or task family and each ``--actors`` kind and ``--physics`` backend (
 with the shipped config, this times (after one warm-up call, best of ``--repeats``) the jitted,
 seed-vmapped pieces of one iteration:
 
-- ``collect``: one iteration's collection (meta-RL: ``Trainer.collect_meta``, PEARL's prior and
-  posterior phases; single task: ``Trainer.collect_single``, ``steps_per_iteration`` steps);
-- ``updates``: ``--updates`` SAC steps (``Trainer.learn`` without collection), from a buffer filled
-  by one collection, reported per update (the shipped ``updates_per_iteration`` gives the
+- ``collect``: one iteration's collection (``TaskSet.collect``; meta-RL: PEARL's prior and
+  posterior phases; single task: ``steps_per_iteration`` steps);
+- ``updates``: ``--updates`` SAC steps (``Iteration.learn`` without collection), from a buffer
+  filled by one collection, reported per update (the shipped ``updates_per_iteration`` gives the
   iteration's update time);
 - ``adapt``: meta-RL only, the protocol on the test tasks (``Trainer.compiled_adapt``), once.
 

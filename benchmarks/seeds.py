@@ -10,7 +10,7 @@ Tasks (a meta-RL task family; one seed unless a single ``--seeds`` value is give
     python benchmarks/seeds.py --env cartpole_fl_ood --tasks 1 5 10 40 --iterations 1
 
 What is timed. For each seed count S, ``Trainer(cfg).init_seeds()`` builds S seeds' states
-(sharded over devices as a run shards them, ``Trainer.place``) and ``trainer.compiled_chunk(n)``
+(sharded over devices as a run shards them, ``SeedAxis.place``) and ``trainer.compiled_chunk(n)``
 the chunk of ``n = --iterations`` iterations, jit(vmap) over seeds. The chunk runs once (compile
 and run), then ``--repeats`` times; "compile (s)" is the first call less the best later one, and
 the best run gives "s / iteration" (collection + ``updates_per_iteration`` SAC updates, all

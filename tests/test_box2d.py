@@ -208,8 +208,8 @@ LUNAR_META = {
 
 def test_meta_collection_and_protocol_on_lunarlander_params_step_the_batch_together():
     """PEARL's warm-up, collection phases and test-task protocol on the Box2D family run through
-    the one rollout path (``Trainer.warmup``, ``collect_meta``, ``adapt``): one host call per env
-    step for all seeds × tasks (× runs), the tasks' gravity in each env."""
+    the one rollout path (``Trainer.warmup``, ``MetaTasks.collect_tasks``, ``adapt``): one host
+    call per env step for all seeds × tasks (× runs), the tasks' gravity in each env."""
     trainer = Trainer(config_lib.from_mapping(LUNAR_META))
     env, n = trainer.env, trainer.task_set.num_train
     state = trainer.init_seeds()
