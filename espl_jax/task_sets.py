@@ -1,9 +1,11 @@
-"""The tasks a run trains on, and how an iteration collects experience on them (Algorithm 1
-line 4–7, Algorithm 2 lines 3–10; docs/design.md "One trainer").
+"""The tasks a run trains on, how an iteration collects experience on them (Algorithm 1
+lines 4–7, Algorithm 2 lines 3–10), and which tasks and latents an update draws (docs/design.md
+"One trainer").
 
-Everything single-task runs and meta-RL runs do differently before the SAC update lives here, in
-two task sets with one interface; the trainer (``espl_jax.learner``) and the iteration
-(``espl_jax.iteration``) do not ask which one they hold.
+Everything single-task runs and meta-RL runs do differently in training lives here, in two task
+sets with one interface, but for PEARL's encoder's own training (``espl_jax.sac``): the trainer
+(``espl_jax.learner``), the iteration (``espl_jax.iteration``) and the SAC update do not ask
+which one they hold.
 
 - ``SingleTask``: a single-task env as a family of one. T = 1 task (the env's default params),
   a (0,)-sized latent, no encoder. ESPL's collection: one Bernoulli mask (Algorithm 1 line 4),
@@ -15,7 +17,8 @@ two task sets with one interface; the trainer (``espl_jax.learner``) and the ite
   (``posterior_steps``, z from the posterior of a context drawn from the fresh encoder buffer,
   per trajectory, into the RL buffer only). CSP draws a Bernoulli mask of σ(Ψ(z)) with every z.
   Before the first iteration ``warmup`` fills every training task with ``initial_steps``
-  prior-z steps (both buffers).
+  prior-z steps (both buffers). An update draws ``meta_batch`` tasks with replacement, a
+  context of each and z ~ q(z | c) (``sample_batch``, ``latents``).
 
 Both step their envs through ``espl_jax.rollout.collect``.
 """
