@@ -1,7 +1,7 @@
 """How fast the one rollout path steps a Box2D env (gymnasium on the host, ``envs/box2d.py``).
 
 The Box2D env is a functional ``Environment`` whose step is one ``jax.pure_callback`` per env step
-for the whole seed batch, inside the compiled ``lax.scan`` of ``Trainer.collect_single``. For each
+for the whole seed batch, inside the compiled ``lax.scan`` of ``SingleTask.collect``. For each
 ``--seeds`` count, with the shipped config of ``--env`` (only ``seeds`` changed), this times (after
 one warm-up call, best and median of ``--repeats``) one iteration's collection
 (``steps_per_iteration`` env steps per seed), the part of it spent inside the gymnasium env
@@ -68,11 +68,10 @@ def measure(env: str, seeds: int, repeats: int, iterations: int) -> dict:
     trainer = Trainer(cfg)
     clock = CLOCKS.setdefault(env, EnvClock(type(trainer.env.make_env().unwrapped)))
 
-    def one_seed_collect(s):
-        key, mask, k_collect, _ = trainer.start_iteration(s.key, s.actor)
-        return trainer.collect_single(s.replace(key=key), mask, k_collect)
+    def one_seed_collect(s):  # an iteration's collection (the update key is dropped)
+        return trainer.task_set.collect(trainer.actor, s)[:2]
 
-    collect_fn = trainer.over_seeds(one_seed_collect)
+    collect_fn = trainer.seed_axis.over_seeds(one_seed_collect)
     holder = {"state": trainer.init_seeds()}
 
     def collect():  # the episodes go on across calls

@@ -4,10 +4,10 @@ For an env or task family and each ``--actors`` kind and ``--physics`` backend (
 with the shipped config, this times (after one warm-up call, best of ``--repeats``) the jitted,
 seed-vmapped pieces of one iteration:
 
-- ``collect``: one iteration's collection (meta-RL: ``Trainer.collect_meta``, PEARL's prior and
-  posterior phases; single task: ``Trainer.collect_single``, ``steps_per_iteration`` steps);
-- ``updates``: ``--updates`` SAC steps (``Trainer.learn`` without collection), from a buffer filled
-  by one collection, reported per update (the shipped ``updates_per_iteration`` gives the
+- ``collect``: one iteration's collection (``TaskSet.collect``; meta-RL: PEARL's prior and
+  posterior phases; single task: ``steps_per_iteration`` steps);
+- ``updates``: ``--updates`` SAC steps (``Iteration.learn`` without collection), from a buffer
+  filled by one collection, reported per update (the shipped ``updates_per_iteration`` gives the
   iteration's update time);
 - ``adapt``: meta-RL only, the protocol on the test tasks (``Trainer.compiled_adapt``), once.
 
@@ -60,19 +60,16 @@ def measure(env: str, actor: str, updates: int, repeats: int, physics: str = "au
     key = jax.random.PRNGKey(1)
     keys = key[None]
 
-    def collect_one(s, k):
-        if trainer.meta:
-            return trainer.collect_meta(s, k)[0]
-        _, mask, k_collect, _ = trainer.start_iteration(k, s.actor)
-        return trainer.collect_single(s, mask, k_collect)[0]
+    def collect_one(s, k):  # an iteration's collection, on the task set of the run
+        return trainer.task_set.collect(trainer.actor, s.replace(key=k))[0]
 
-    collect = trainer.over_seeds(collect_one)
+    collect = trainer.seed_axis.over_seeds(collect_one)
     c_first, c_best, state = _timed(collect, state, keys, repeats=repeats)
 
     def learn(s, k):
-        return trainer.learn(s, {}, k)[0]
+        return trainer.iteration.learn(s, {}, k)[0]
 
-    learn = trainer.over_seeds(learn)
+    learn = trainer.seed_axis.over_seeds(learn)
     u_first, u_best, _ = _timed(learn, state, keys, repeats=repeats)
 
     a_first = a_best = float("nan")
@@ -90,7 +87,7 @@ def measure(env: str, actor: str, updates: int, repeats: int, physics: str = "au
         "updates_compile_s": u_first - u_best,
         "adapt_s": a_best,
         "adapt_compile_s": a_first - a_best,
-        "steps_per_iteration": trainer.steps_per_iteration,
+        "steps_per_iteration": trainer.task_set.steps_per_iteration,
     }
 
 

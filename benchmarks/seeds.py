@@ -10,7 +10,7 @@ Tasks (a meta-RL task family; one seed unless a single ``--seeds`` value is give
     python benchmarks/seeds.py --env cartpole_fl_ood --tasks 1 5 10 40 --iterations 1
 
 What is timed. For each seed count S, ``Trainer(cfg).init_seeds()`` builds S seeds' states
-(sharded over devices as a run shards them, ``Trainer.place``) and ``trainer.compiled_chunk(n)``
+(sharded over devices as a run shards them, ``SeedAxis.place``) and ``trainer.compiled_chunk(n)``
 the chunk of ``n = --iterations`` iterations, jit(vmap) over seeds. The chunk runs once (compile
 and run), then ``--repeats`` times; "compile (s)" is the first call less the best later one, and
 the best run gives "s / iteration" (collection + ``updates_per_iteration`` SAC updates, all
@@ -19,12 +19,12 @@ includes the collection's share). "ratio" is s / iteration over that of the firs
 seed, one task): S vmapped seeds cost S x one seed when the ratio is S, and are free when it is 1.
 
 Tasks mode varies ``meta_batch``, the number of tasks whose buffers every SGD step samples (RL
-batch and context per task, PEARL's meta batch; ``espl_jax/sac.py``, ``SAC.sample_batch``). It
-is the task axis of the update (the batch of the critic and actor losses is meta_batch x
-batch_size transitions); the tasks collected on per iteration (``tasks_per_iteration``) and the
-number of training tasks (the family's ``n_train``) stay the config's. Meta-RL states need
-PEARL's initial collection before the first iteration: ``espl_jax.run.warmup`` runs once per
-row, timed apart ("warm-up (s)", compile included).
+batch and context per task, PEARL's meta batch; ``espl_jax/task_sets.py``,
+``MetaTasks.sample_batch``). It is the task axis of the update (the batch of the critic and
+actor losses is meta_batch x batch_size transitions); the tasks collected on per iteration
+(``tasks_per_iteration``) and the number of training tasks (the family's ``n_train``) stay the
+config's. Meta-RL states need PEARL's initial collection before the first iteration:
+``espl_jax.run.warmup`` runs once per row, timed apart ("warm-up (s)", compile included).
 
 ``--updates``, ``--steps`` (single task: ``steps_per_iteration``; meta-RL: ``prior_steps`` +
 ``posterior_steps`` per visited task, split as the config splits them) and ``--initial-steps``
@@ -94,10 +94,10 @@ def time_chunk(cfg: config.Config, iterations: int, repeats: int) -> dict[str, A
         "env": cfg.env,
         "seeds": cfg.seeds,
         "meta_batch": cfg.meta_batch if trainer.meta else None,
-        "devices": trainer.device_info,
+        "devices": trainer.seed_axis.device_info,
         "iterations": iterations,
         "updates_per_iteration": cfg.updates_per_iteration,
-        "env_steps_per_iteration": trainer.steps_per_iteration,
+        "env_steps_per_iteration": trainer.task_set.steps_per_iteration,
         "batch_size": cfg.batch_size,
         "warmup_s": warmup_s,
         "compile_s": compile_s,

@@ -22,6 +22,7 @@ import argparse
 import dataclasses
 import json
 import sys
+from functools import cached_property
 from pathlib import Path
 
 import jax
@@ -30,9 +31,11 @@ import numpy as np
 import yaml
 
 from espl_jax import checkpoint, rundir
+from espl_jax import config as config_lib
 from espl_jax import run as run_lib
+from espl_jax.iteration import Iteration
 from espl_jax.learner import Trainer
-from espl_jax.sac import SAC
+from espl_jax.sac import SAC, SACConfig
 
 
 class TracingSAC(SAC):
@@ -42,9 +45,9 @@ class TracingSAC(SAC):
         new, metrics = super().update(state, key, tau, l_min, frozen)
         # The same batch and context the update drew (same key split as SAC.update).
         k_batch = jax.random.split(key, 3)[0]
-        batch, context = self.sample_batch(state, k_batch)
+        batch, context = self.tasks.sample_batch(state, k_batch, self.config.batch_size)
         metrics["reward_abs_max"] = jnp.max(jnp.abs(batch.reward))
-        if self.meta:
+        if self.encoder is not None:
             mu, _ = jax.vmap(self.encoder.posterior, (None, 0))(state.encoder, context)
             metrics["z_mu_abs_mean"] = jnp.mean(jnp.abs(mu))
             metrics["z_mu_abs_max"] = jnp.max(jnp.abs(mu))
@@ -56,17 +59,13 @@ class TracingSAC(SAC):
         return new, metrics
 
 
-class TracingTrainer(Trainer):
-    """The run's trainer, with every update's metrics kept instead of their mean."""
-
-    @property
-    def sac(self) -> SAC:
-        return TracingSAC(self.config, self.actor, self.encoder, self.num_train_tasks)
+class TracingIteration(Iteration):
+    """The run's iteration, with every update's metrics kept instead of their mean."""
 
     def learn(self, state, collect_metrics, key):
         tau, l_min = self.schedules(state.iteration)
         frozen = self.frozen(state.iteration)
-        keys = jax.random.split(key, self.config.updates_per_iteration)
+        keys = jax.random.split(key, self.updates_per_iteration)
         state, u_metrics = jax.lax.scan(
             lambda s, k: self.sac.update(s, k, tau, l_min, frozen), state, keys
         )
@@ -75,6 +74,18 @@ class TracingTrainer(Trainer):
             **u_metrics,
             "iteration": state.iteration + 1,
         }
+
+
+class TracingTrainer(Trainer):
+    """The run's trainer, with the tracing SAC and iteration."""
+
+    @cached_property
+    def sac(self) -> SAC:
+        return TracingSAC(config_lib.view(SACConfig, self.config), self.actor, self.task_set)
+
+    @cached_property
+    def iteration(self) -> Iteration:
+        return TracingIteration(**vars(super().iteration))
 
 
 def restore_at(run_dir: Path, trainer: Trainer, step: int):
@@ -90,7 +101,7 @@ def restore_at(run_dir: Path, trainer: Trainer, step: int):
         shutil.copytree(directory / str(step), Path(tmp) / str(step))
         template = trainer.init_seeds()
         _, state = checkpoint.restore_latest(tmp, template)
-    return trainer.place(state)
+    return trainer.seed_axis.place(state)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -110,21 +121,19 @@ def main(argv: list[str] | None = None) -> int:
     config = dataclasses.replace(config, **overrides)
     trainer = TracingTrainer(config)
     state = restore_at(args.run, trainer, args.start)
-    run_chunk, closer = run_lib.chunk_runner(trainer)
+    run_chunk = run_lib.chunk_runner(trainer)
     rows = []
-    with closer:
-        for _ in range(args.iterations):
-            state, metrics = run_chunk(state, 1)
-            m = jax.tree.map(lambda x: np.asarray(x)[:, 0], metrics)  # [seeds, updates]
-            it = int(np.asarray(m.pop("iteration")).ravel()[0])
-            per_update = {k: np.asarray(v)[0].tolist() for k, v in m.items()}
-            rows.append({"iteration": it, **per_update})
-            peak = {k: float(np.max(np.abs(v))) for k, v in per_update.items()}
-            print(
-                f"iteration {it}: "
-                + ", ".join(f"max|{k}| {v:.4g}" for k, v in sorted(peak.items())),
-                flush=True,
-            )
+    for _ in range(args.iterations):
+        state, metrics = run_chunk(state, 1)
+        m = jax.tree.map(lambda x: np.asarray(x)[:, 0], metrics)  # [seeds, updates]
+        it = int(np.asarray(m.pop("iteration")).ravel()[0])
+        per_update = {k: np.asarray(v)[0].tolist() for k, v in m.items()}
+        rows.append({"iteration": it, **per_update})
+        peak = {k: float(np.max(np.abs(v))) for k, v in per_update.items()}
+        print(
+            f"iteration {it}: " + ", ".join(f"max|{k}| {v:.4g}" for k, v in sorted(peak.items())),
+            flush=True,
+        )
     args.out.write_text(
         json.dumps(
             {

@@ -209,8 +209,8 @@ def time_ours(args: argparse.Namespace, actor: str) -> dict[str, Any]:
 
 
 def time_our_sgd(trainer: Trainer, state, steps: int) -> dict[str, Any]:
-    tau, l_min = trainer.schedules(state.iteration)
-    frozen = trainer.frozen(state.iteration)
+    tau, l_min = trainer.iteration.schedules(state.iteration)
+    frozen = trainer.iteration.frozen(state.iteration)
 
     def loop(state, key):
         def body(s, k):

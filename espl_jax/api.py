@@ -37,8 +37,8 @@ from espl_jax import run as run_lib
 from espl_jax.cli import check_path, use_compilation_cache
 from espl_jax.config import Config, UserError
 from espl_jax.envs.base import action_center_half_range, to_env_units
-from espl_jax.learner import Trainer, gather
-from espl_jax.seeds import one_seed
+from espl_jax.learner import Trainer
+from espl_jax.seeds import gather, one_seed
 
 # The hall-of-fame table's columns, in formulas.jsonl's names (``halloffame``'s module docstring):
 # ``stability`` and ``spectral_radius`` are analyze's verdict at the env's equilibrium (None for

@@ -394,6 +394,13 @@ def _plain(value: Any) -> Any:
     return list(value) if isinstance(value, tuple) else value
 
 
+def view(cls: type, config: Config) -> Any:
+    """A component's view of the config: the frozen dataclass ``cls`` (e.g. ``sac.SACConfig``)
+    with ``config``'s values of its fields, so the component receives the keys it uses and no
+    other (each key is still declared, documented and validated once, in ``Config``)."""
+    return cls(**{f.name: getattr(config, f.name) for f in fields(cls)})
+
+
 def _validate(c: Config) -> None:
     # Types first, for every key, so that each range below sees a value of its key's type.
     for f in fields(c):

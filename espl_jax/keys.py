@@ -25,7 +25,7 @@ Salts folded into each seed's ``TrainState.key`` (``salted``), one stream each:
 
 Salts folded into a sub-key (a different key from the above, so the values may repeat):
 
-    POSTERIOR_DRAW 1     meta-RL collection: a phase's z draws and masks, folded   learner
+    POSTERIOR_DRAW 1     meta-RL collection: a phase's z draws and masks, folded   task_sets
                          into the trajectory's collection key
     ENCODER        1     PEARL's encoder init, and the critic loss's z sample      sac
 

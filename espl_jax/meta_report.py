@@ -35,9 +35,9 @@ from espl_jax.keys import (
     offset_key,
     salted,
 )
-from espl_jax.learner import Trainer, gather
+from espl_jax.learner import Trainer
 from espl_jax.sac import TrainState
-from espl_jax.seeds import one_seed
+from espl_jax.seeds import gather, one_seed
 from espl_jax.symbolic import live_paths
 
 TASKS_FILE = "tasks.json"

@@ -28,8 +28,8 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from espl_jax import config as config_lib
 from espl_jax import selector
-from espl_jax.config import Config
 from espl_jax.networks import MLP, EnsembleMLP, HyperNetwork, generated_policy
 from espl_jax.symbolic import SymbolicNetwork, get_layout
 
@@ -39,6 +39,36 @@ LOGIT_BOUND = 6.0  # CSP: the authors' penalty keeps Ψ's logits within ±6 (tra
 
 Params = dict[str, Any]
 TaskPolicy = dict[str, Any]
+
+
+@dataclass(frozen=True)
+class PolicyConfig:
+    """The config keys the policy kinds read (``espl_jax.config.Config`` documents each)."""
+
+    layout: str
+    selector: str
+    std_hidden: tuple[int, ...]
+    mlp_actor_hidden: tuple[int, ...]
+    generator_hidden: tuple[int, ...]
+    pearl_hidden: tuple[int, ...]
+    hyper_policy_hidden: int
+    squash_epsilon: float
+    grad_clip: float
+    actor_learning_rate: float
+    probs_learning_rate: float
+    finetune: bool
+    finetune_learning_rate: float
+    schedule_iterations: int
+    updates_per_iteration: int
+    csp_relaxed_mask: str
+    bias_l1_scale: float
+    logit_clamp_scale: float
+    weight_l1_scale: float
+
+
+def no_latent() -> jax.Array:
+    """The z of a single-task run's policy: (0,)."""
+    return jnp.zeros((0,))
 
 
 def _mean_abs(arrays: list[jax.Array]) -> jax.Array:
@@ -69,12 +99,12 @@ class Actor:
     """Static description of a policy kind; all methods are pure functions of their arguments.
 
     Attributes:
-        config: the run's config.
+        config: the keys of the run's config the kinds read.
         obs_dim, action_dim: env sizes.
         latent_dim: size of z (0 for single-task runs).
     """
 
-    config: Config
+    config: PolicyConfig
     obs_dim: int
     action_dim: int
     latent_dim: int = 0
@@ -88,6 +118,17 @@ class Actor:
 
     @property
     def uses_selector(self) -> bool:
+        return False
+
+    @property
+    def one_formula(self) -> bool:
+        """The learned params are one formula for every task (ESPL), so a run can keep the best
+        one it has seen (the hall of fame, ``espl_jax.halloffame``)."""
+        return False
+
+    @property
+    def freezes_mask(self) -> bool:
+        """The kind has learned path probabilities to freeze for fine-tuning (``freeze``)."""
         return False
 
     def init(self, key: jax.Array) -> Params:
@@ -178,7 +219,7 @@ class Actor:
         return jnp.clip(self._std_net().apply(std_params, inputs), LOG_STD_MIN, LOG_STD_MAX)
 
 
-def _probs_and_rest_optimizer(config: Config) -> optax.GradientTransformation:
+def _probs_and_rest_optimizer(config: PolicyConfig) -> optax.GradientTransformation:
     """ESPL: the selector's probabilities keep the paper's step while w, b and θ_F may take a
     larger one (config.py); one global-norm clip over all of them. With ``finetune`` the step
     of w, b and θ_F becomes ``finetune_learning_rate`` once the schedule is over."""
@@ -213,6 +254,14 @@ class StoredSymbolic(Actor):
     @property
     def uses_selector(self) -> bool:
         return self.config.selector == "probabilistic"
+
+    @property
+    def one_formula(self) -> bool:
+        return True
+
+    @property
+    def freezes_mask(self) -> bool:
+        return self.uses_selector
 
     def init(self, key: jax.Array) -> Params:
         k_mean, k_std = jax.random.split(key)
@@ -438,10 +487,12 @@ SINGLE_TASK_ACTORS = {"symbolic": StoredSymbolic, "mlp": MLPActor}
 META_ACTORS = {"symbolic": GeneratedSymbolic, "pearl": PearlActor, "hyper": HyperActor}
 
 
-def make_actor(config: Config, obs_dim: int, action_dim: int, latent_dim: int) -> Actor:
+def make_actor(config: config_lib.Config, obs_dim: int, action_dim: int, latent_dim: int) -> Actor:
     """The policy kind of ``config.actor``: single-task kinds for latent_dim 0, meta-RL otherwise.
 
     The config validates the combination (``config.actor`` against the env); this only maps.
     """
     kinds = META_ACTORS if latent_dim else SINGLE_TASK_ACTORS
-    return kinds[config.actor](config, obs_dim, action_dim, latent_dim)
+    return kinds[config.actor](
+        config_lib.view(PolicyConfig, config), obs_dim, action_dim, latent_dim
+    )

@@ -7,13 +7,14 @@ through one host callback per env step for the whole vmapped batch.
   Algorithm 2 lines 6–10). ESPL draws its Bernoulli mask once per iteration and continues its
   episodes across iterations; the meta-RL phases reset first and draw a new z (and CSP a new
   mask) at the start of every trajectory, as PEARL's sampler does (``draw``).
-- ``evaluate``: deterministic episodes of one fixed task policy (ESPL: the exported formula).
+- ``evaluate``: deterministic episodes of one fixed task policy; ``evaluate_learned``, of a
+  single-task run's exported formula.
 - ``adapt_and_evaluate``: PEARL's test-task protocol for one run on one task (docs/design.md
   "One trainer"): start from the prior, collect whole trajectories until ``eval_steps``,
   the context accumulating online from the run itself; after ``exploration_trajectories``
   trajectories z is a sample of the posterior of every transition so far, re-drawn after each
   trajectory; actions are deterministic (CSP: the formula of p > 0.5); the return of the last
-  trajectory is reported.
+  trajectory is reported. ``runs_on_tasks`` repeats it on a batch of tasks.
 
 Only ``terminated`` is stored in transitions; at an episode end (time limit or not) the stored
 next_obs is the true final observation, not the reset one (``Environment.step_autoreset``).
@@ -30,7 +31,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from espl_jax import pearl
-from espl_jax.policies import Actor, TaskPolicy
+from espl_jax.policies import Actor, TaskPolicy, no_latent
 from espl_jax.replay import Transition
 
 Draw = Callable[[jax.Array], tuple[Any, Any]]  # episode index -> (z-dependent part, mask)
@@ -154,6 +155,15 @@ def evaluate(
     return total
 
 
+def evaluate_learned(
+    env, actor: Actor, actor_params: Any, task_params: Any, key: jax.Array, episodes: int
+) -> jax.Array:
+    """Single task: returns [episodes] of deterministic episodes of the learned params'
+    eval-mask policy (the exported formula)."""
+    policy = actor.at(actor_params, no_latent())
+    return evaluate(env, actor, policy, actor.eval_mask(policy), task_params, key, episodes)
+
+
 @struct.dataclass
 class Adapted:
     """What one run of the protocol ends with."""
@@ -239,3 +249,13 @@ def adapt_and_evaluate(
     keys = jax.random.split(k_run, eval_steps + env.horizon)
     c, _ = jax.lax.scan(step, init, keys)
     return Adapted(c["final"], c["first"], c["trajectories"], c["z"])
+
+
+def runs_on_tasks(
+    run: Callable[[Any, jax.Array], Any], task_params: Any, key: jax.Array, runs: int
+):
+    """``run(task params, key)`` — one run of the protocol (``adapt_and_evaluate``) — ``runs``
+    times on each task of ``task_params`` [N], each with its own key: leaves [N, runs]."""
+    n = jax.tree.leaves(task_params)[0].shape[0]
+    keys = jax.random.split(key, n * runs).reshape(n, runs, -1)
+    return jax.vmap(jax.vmap(run, (None, 0)), (0, 0))(task_params, keys)

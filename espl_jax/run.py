@@ -26,9 +26,9 @@ from espl_jax import expression as ex
 from espl_jax import halloffame as hof
 from espl_jax.config import Config, UserError
 from espl_jax.keys import PROGRESS_EVAL, REFERENCE_FIRST_EPISODE, REPORT, SELECTION, salted
-from espl_jax.learner import Trainer, gather
+from espl_jax.learner import Trainer
 from espl_jax.sac import TrainState
-from espl_jax.seeds import one_seed
+from espl_jax.seeds import gather, one_seed
 
 # Metrics whose non-finite value means the run has diverged.
 LOSS_KEYS = ("critic_loss", "actor_loss", "penalty", "q")
@@ -111,7 +111,7 @@ def train(
     trainer = Trainer(config)
     # Fail fast on an unknown env or too many devices, before anything is written.
     trainer.env  # noqa: B018
-    trainer.mesh  # noqa: B018
+    trainer.seed_axis.mesh  # noqa: B018
     if jax.process_index() != 0:  # process 0 holds the run directory for the whole group
         return _train(trainer, run_dir, resume, show_progress, stop_after)
     run_dir.mkdir(parents=True, exist_ok=True)  # resume: it exists (config.yaml was read)
@@ -168,7 +168,7 @@ def _train(
     with checkpoint.manager(run_dir / rundir.CHECKPOINT_DIR) as mngr:
         if not resume:  # a run killed before its first chunk ends resumes from here
             checkpoint.save(mngr, 0, state)
-        if start == 0 and trainer.meta:  # PEARL's initial collection on every training task
+        if start == 0 and trainer.task_set.initial_steps:  # PEARL's initial collection
             state = warmup(trainer, state)
         iteration = start
         while iteration < end:
@@ -221,7 +221,7 @@ def _barrier(name: str) -> None:
 
 def keeps_hall_of_fame(trainer: Trainer) -> bool:
     """Single-task symbolic runs keep every chunk's formula (espl_jax.halloffame)."""
-    return not trainer.meta and trainer.actor.symbolic is not None
+    return trainer.actor.one_formula
 
 
 def record_hall_of_fame(
@@ -252,7 +252,7 @@ def restore(run_dir: str | Path, trainer: Trainer) -> tuple[int, TrainState]:
     episodes in progress dropped.
     """
     template = trainer.init_seeds()
-    capacity = trainer.buffer_capacity
+    capacity = trainer.task_set.buffer_capacity
     fresh_rollout = False
 
     def with_capacity(state: TrainState, n: int) -> TrainState:
@@ -272,7 +272,7 @@ def restore(run_dir: str | Path, trainer: Trainer) -> tuple[int, TrainState]:
     step, state = checkpoint.restore_latest(Path(run_dir) / rundir.CHECKPOINT_DIR, like)
     if fresh_rollout:
         state = state.replace(rollout=template.rollout)
-    return step, trainer.place(with_capacity(state, capacity))
+    return step, trainer.seed_axis.place(with_capacity(state, capacity))
 
 
 def chunk_runner(trainer: Trainer):
@@ -292,7 +292,7 @@ def progress_evaluator(trainer: Trainer):
     """(state [S], keys [S, 2]) -> returns [S, n] for the learning curve after each chunk:
     single task, ``progress_eval_episodes`` episodes of the exported formula; meta-RL, PEARL's
     protocol on every test task (the last trajectory's return, averaged over runs)."""
-    if trainer.meta:
+    if trainer.meta:  # the two reports (below, finish): a family's test tasks, a task's formula
         adapt = meta_report.adapter(trainer, trainer.tasks[1])
         return lambda state, keys: gather(adapt(state, keys).final_return).mean(axis=-1)
     evaluate = evaluator(trainer, trainer.config.progress_eval_episodes)
@@ -327,7 +327,7 @@ def finish(
     # Every seed on every process, as numpy (the replay buffers stay behind); the jitted
     # evaluations below take numpy input and shard it over the devices again.
     state = gather(state.replace(buffer=None, encoder_buffer=None))
-    if trainer.meta:
+    if trainer.meta:  # a family's report is per test task (meta_report); a single task's per seed
         return meta_report.finish(trainer, state, run_dir, train_seconds, list(warnings or []))
     cfg, env = trainer.config, trainer.env
     warnings = list(warnings or [])

@@ -101,7 +101,7 @@ def result_header(
             "iterations": int(state.iteration[best]),
             "wall_seconds_training": round(train_seconds, 1),
         },
-        "devices": trainer.device_info,
+        "devices": trainer.seed_axis.device_info,
         **({"physics": trainer.physics} if trainer.physics else {}),
     }
 

@@ -1,10 +1,11 @@
 """Functional SAC over task batches: ESPL (Algorithm 1 lines 9–18) and CSP/PEARL/Hyper
 (Algorithm 2 lines 13–30) are the same update.
 
-Every update draws a batch of tasks (single-task: the one task), per task an RL batch from its
-replay buffer and, for meta-RL, a context from its encoder buffer. The encoder turns the context
-into q(z|c); a reparameterised sample z conditions the critic (whose loss, with β·KL(q‖N(0,I)),
-trains the encoder); the policy side and the targets see stop_gradient(z).
+Every update asks the task set (``espl_jax.task_sets``) for a batch of tasks (single-task: the
+one task), per task an RL batch from its replay buffer and, for meta-RL, a context from its
+encoder buffer, and for the tasks' latents: PEARL's encoder turns the context into q(z|c); a
+reparameterised sample z conditions the critic (whose loss, with β·KL(q‖N(0,I)), trains the
+encoder); the policy side and the targets see stop_gradient(z). A single task's z is (0,).
 
 - Critic: twin Q with target networks and clipped double-Q (Haarnoja et al. 2018, Eq. 5 with the
   min of two Qs), y = scale·r + γ(1 − term)(min Q'(s', a', z) − α log π(a'|s', z)); the next
@@ -28,7 +29,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import jax
 import jax.numpy as jnp
@@ -36,11 +37,31 @@ import optax
 from flax import struct
 
 from espl_jax import pearl, replay
-from espl_jax.config import Config
 from espl_jax.networks import TwinQ
 from espl_jax.policies import Actor
 
 Metrics = dict[str, jax.Array]
+
+
+@dataclass(frozen=True)
+class SACConfig:
+    """The config keys the update reads (``espl_jax.config.Config`` documents each)."""
+
+    batch_size: int
+    learning_rate: float
+    gamma: float
+    reward_scale: float
+    polyak: float
+    alpha: float
+    auto_alpha: bool
+    critic: str
+    critic_hidden: tuple[int, ...]
+    critic_layer_norm: bool
+    crossq_momentum: float
+    crossq_warmup: int
+    penalty_scale: float
+    select_scale: float
+    kl_weight: float
 
 
 @struct.dataclass
@@ -75,6 +96,24 @@ class TrainState:
     anchor_iteration: jax.Array | None = None
 
 
+class TaskBatches(Protocol):
+    """What the update asks of the task set (``espl_jax.task_sets.SingleTask``, ``MetaTasks``)."""
+
+    @property
+    def encoder(self) -> pearl.Encoder | None:
+        """PEARL's context encoder, trained by the critic loss; None for a single task."""
+
+    def sample_batch(
+        self, state: TrainState, key: jax.Array, batch_size: int
+    ) -> tuple[replay.Transition, replay.Transition | None]:
+        """(RL batch [tasks, B, ...], context [tasks, C, ...] or None) for one update."""
+
+    def latents(
+        self, encoder: Any, context: replay.Transition | None, key: jax.Array, tasks: int
+    ) -> tuple[jax.Array, jax.Array]:
+        """z [tasks, L] (reparameterised) and Σ_tasks KL(q ‖ N(0, I))."""
+
+
 def task_keys(key: jax.Array, n: int) -> jax.Array:
     """One key per task: ``key`` itself for one task (so a single-task run draws what it drew
     before runs had a task axis), else ``split(key, n)``."""
@@ -86,20 +125,19 @@ class SAC:
     """Static parts of the algorithm: networks, optimizers and hyperparameters.
 
     Attributes:
-        config: the run's config.
+        config: the keys of the run's config the update reads.
         actor: the policy kind.
-        encoder: PEARL's context encoder, or None for single-task runs.
-        num_tasks: size of the buffers' task axis.
+        tasks: the task set the batches and latents come from.
     """
 
-    config: Config
+    config: SACConfig
     actor: Actor
-    encoder: pearl.Encoder | None
-    num_tasks: int
+    tasks: TaskBatches
 
     @property
-    def meta(self) -> bool:
-        return self.encoder is not None
+    def encoder(self) -> pearl.Encoder | None:
+        """PEARL's context encoder (a task family's), trained here; None for a single task."""
+        return self.tasks.encoder
 
     @property
     def obs_dim(self) -> int:
@@ -164,40 +202,10 @@ class SAC:
             "encoder": None,
             "encoder_opt": None,
         }
-        if self.meta:
+        if self.encoder is not None:  # the encoder's params live in the state with its optimizer
             encoder = self.encoder.init(jax.random.fold_in(key, 1), self.context_dim)
             learner.update(encoder=encoder, encoder_opt=self.encoder_tx.init(encoder))
         return learner
-
-    # Batches and latents ---------------------------------------------------------------------
-
-    def sample_batch(
-        self, state: TrainState, key: jax.Array
-    ) -> tuple[replay.Transition, replay.Transition | None]:
-        """(RL batch [tasks, B, ...], context [tasks, C, ...] or None) for one update."""
-        cfg = self.config
-        if not self.meta:
-            tasks = jnp.zeros((1,), jnp.int32)
-            return replay.sample(state.buffer, tasks, task_keys(key, 1), cfg.batch_size), None
-        k_tasks, k_rl, k_context = jax.random.split(key, 3)
-        n = cfg.meta_batch
-        tasks = jax.random.randint(k_tasks, (n,), 0, self.num_tasks)  # with replacement (PEARL)
-        batch = replay.sample(state.buffer, tasks, jax.random.split(k_rl, n), cfg.batch_size)
-        context = replay.sample(
-            state.encoder_buffer, tasks, jax.random.split(k_context, n), cfg.context_batch
-        )
-        return batch, context
-
-    def latents(
-        self, encoder: Any, context: replay.Transition | None, key: jax.Array, tasks: int
-    ) -> tuple[jax.Array, jax.Array]:
-        """z ~ q(z | c) per task (reparameterised) and Σ_tasks KL(q ‖ N(0, I)); single-task
-        runs have a (tasks, 0) z and no KL."""
-        if not self.meta:
-            return jnp.zeros((tasks, 0)), jnp.zeros(())
-        mu, var = jax.vmap(self.encoder.posterior, (None, 0))(encoder, context)
-        z = pearl.sample(key, mu, var)
-        return z, jnp.sum(pearl.kl_to_standard_normal(mu, var))
 
     # Losses --------------------------------------------------------------------------------
 
@@ -216,7 +224,7 @@ class SAC:
         actor, cfg = self.actor, self.config
         tasks, size = batch.reward.shape[:2]
         k_mask, k_act = jax.random.split(key)
-        z, kl = self.latents(encoder, context, jax.random.fold_in(key, 1), tasks)
+        z, kl = self.tasks.latents(encoder, context, jax.random.fold_in(key, 1), tasks)
         alpha = jnp.exp(state.log_alpha)
 
         def next_action(b, z_t, k_mask_t, k_act_t):
@@ -250,9 +258,9 @@ class SAC:
         error = q - jax.lax.stop_gradient(target)[..., None]
         losses = jnp.sum(jnp.mean(error**2, axis=1), axis=-1)  # per task: Σ_i mean_batch
         critic_loss = jnp.mean(losses)
-        loss = critic_loss + cfg.kl_weight * kl if self.meta else critic_loss
-        metrics = {"critic_loss": critic_loss, "q": jnp.mean(q)}
-        if self.meta:
+        loss, metrics = critic_loss, {"critic_loss": critic_loss, "q": jnp.mean(q)}
+        if self.encoder is not None:  # the critic loss trains the encoder: + β·KL (Algorithm 2)
+            loss = critic_loss + cfg.kl_weight * kl
             metrics["kl"] = kl / tasks
         return loss, (metrics, z, batch_stats)
 
@@ -315,7 +323,7 @@ class SAC:
         """One SAC step: critic (and encoder), actor, α, then Polyak. ``frozen`` (ESPL's
         fine-tune phase) keeps the path probabilities where they are."""
         k_batch, k_critic, k_actor = jax.random.split(key, 3)
-        batch, context = self.sample_batch(state, k_batch)
+        batch, context = self.tasks.sample_batch(state, k_batch, self.config.batch_size)
 
         (_, (c_metrics, z, batch_stats)), (c_grads, e_grads) = jax.value_and_grad(
             self.critic_loss, argnums=(0, 1), has_aux=True
@@ -325,7 +333,7 @@ class SAC:
         if batch_stats is not None:
             critic = {**critic, "batch_stats": batch_stats}
         state = state.replace(critic=critic, critic_opt=critic_opt)
-        if self.meta:
+        if self.encoder is not None:  # the encoder's step, from the critic loss's gradient
             e_updates, encoder_opt = self.encoder_tx.update(
                 e_grads, state.encoder_opt, state.encoder
             )

@@ -37,10 +37,10 @@ sharded, two, placed = train(devices=2)
 _, one, _ = train(devices=1)
 # An argument shared by every seed (task params in Trainer.compiled_adapt) is replicated, not
 # split over the devices: seed s gets x[s] * sum(t).
-with_shared = sharded.over_seeds(lambda x, t: x * t.sum(), shared=(1,))
+with_shared = sharded.seed_axis.over_seeds(lambda x, t: x * t.sum(), shared=(1,))
 report = {
     "jax_devices": len(jax.devices()),
-    "eval_devices": sharded.device_info,
+    "eval_devices": sharded.seed_axis.device_info,
     "state_devices": sorted(placed),
     # per seed: the largest difference of any learned leaf between 2 devices and 1
     "max_abs_diff": [

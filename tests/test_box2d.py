@@ -23,7 +23,7 @@ from espl_jax import checkpoint, envs, reference_eval, rollout, run, rundir
 from espl_jax import config as config_lib
 from espl_jax.envs.reference import reference_env
 from espl_jax.learner import Trainer
-from espl_jax.policies import MLPActor
+from espl_jax.policies import MLPActor, PolicyConfig
 
 pytestmark = pytest.mark.usefixtures("jax_cache")
 GYMNASIUM = {
@@ -82,7 +82,7 @@ def _collect(name: str, steps: int, horizon: int, seeds: int = 2):
     (drawn, as the env does, from each step's reset key)."""
     cfg = config_lib.from_mapping({**TINY_MLP, "env": name})
     env = envs.make(name, horizon=horizon)
-    actor = MLPActor(cfg, env.obs_dim, env.action_dim)
+    actor = MLPActor(config_lib.view(PolicyConfig, cfg), env.obs_dim, env.action_dim)
     params = actor.init(jax.random.PRNGKey(0))
     start_keys = jax.random.split(jax.random.PRNGKey(2), seeds)
     keys = jax.random.split(jax.random.PRNGKey(1), seeds)
@@ -208,10 +208,10 @@ LUNAR_META = {
 
 def test_meta_collection_and_protocol_on_lunarlander_params_step_the_batch_together():
     """PEARL's warm-up, collection phases and test-task protocol on the Box2D family run through
-    the one rollout path (``Trainer.warmup``, ``collect_meta``, ``adapt``): one host call per env
-    step for all seeds × tasks (× runs), the tasks' gravity in each env."""
+    the one rollout path (``Trainer.warmup``, ``MetaTasks.collect_tasks``, ``adapt``): one host
+    call per env step for all seeds × tasks (× runs), the tasks' gravity in each env."""
     trainer = Trainer(config_lib.from_mapping(LUNAR_META))
-    env, n = trainer.env, trainer.num_train_tasks
+    env, n = trainer.env, trainer.task_set.num_train
     state = trainer.init_seeds()
 
     def calls(fn, *args):
@@ -223,7 +223,10 @@ def test_meta_collection_and_protocol_on_lunarlander_params_step_the_batch_toget
     assert warm_calls == 30  # 2 seeds × 40 tasks per call
     np.testing.assert_array_equal(state.buffer.size, np.full((2, n), 30))
     (state, metrics), phase_calls = calls(
-        trainer.over_seeds(lambda s: trainer.collect_meta(s, s.key)), state
+        trainer.seed_axis.over_seeds(
+            lambda s: trainer.task_set.collect_tasks(trainer.actor, s, s.key)
+        ),
+        state,
     )
     assert phase_calls == 20 + 25  # prior and posterior phase, 2 seeds × 3 tasks per call
     assert np.asarray(state.buffer.size).sum() == 2 * (n * 30 + 3 * 45)

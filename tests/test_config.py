@@ -251,3 +251,15 @@ def test_key_table_lists_every_key():
     assert rows["gamma"].split()[1:] == ["float", "0.99", "in", "(0,", "1]"]
     assert rows["critic_hidden"].split()[1:4] == ["list[int]", "[256,", "256]"]
     assert "posterior of that fresh context" in proc.stdout  # the docs are printed
+
+
+def test_component_views_hold_the_configs_values():
+    # The update and the policy kinds receive the keys they read, not the whole Config.
+    from espl_jax.policies import PolicyConfig
+    from espl_jax.sac import SACConfig
+
+    cfg = config_lib.resolve("cartpole_fl_ood", actor="symbolic")
+    for cls in (SACConfig, PolicyConfig):
+        view = config_lib.view(cls, cfg)
+        for f in fields(cls):
+            assert getattr(view, f.name) == getattr(cfg, f.name), f.name

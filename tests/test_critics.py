@@ -12,8 +12,9 @@ from espl_jax import config as config_lib
 from espl_jax import replay
 from espl_jax.learner import Trainer
 from espl_jax.networks import BatchRenorm, TwinQ
-from espl_jax.policies import MLPActor
-from espl_jax.sac import SAC, TrainState
+from espl_jax.policies import MLPActor, PolicyConfig
+from espl_jax.sac import SAC, SACConfig, TrainState
+from espl_jax.task_sets import SingleTask
 
 
 def _renorm_reference(x, mean, var, steps, momentum, warmup, eps=1e-3, r_max=3.0, d_max=5.0):
@@ -73,12 +74,17 @@ def test_the_default_critic_is_a_plain_twin_mlp_and_the_options_add_their_layers
     ]
 
 
+# The update's view of a single task (its batches, its (0,) latent): no env needed.
+ONE_TASK = SingleTask(env=None, steps_per_iteration=0, buffer_capacity=0, exploration_correlation=0)
+
+
 def _crossq_state(**overrides):
     cfg = config_lib.from_mapping(
         {"actor": "mlp", "critic": "crossq", "critic_hidden": [16, 16], "std_hidden": [8],
          "mlp_actor_hidden": [8], "crossq_warmup": 0, **overrides}
     )  # fmt: skip
-    sac = SAC(cfg, MLPActor(cfg, obs_dim=4, action_dim=1), encoder=None, num_tasks=1)
+    actor = MLPActor(config_lib.view(PolicyConfig, cfg), obs_dim=4, action_dim=1)
+    sac = SAC(config_lib.view(SACConfig, cfg), actor, ONE_TASK)
     learner = sac.init_learner(jax.random.PRNGKey(0))
     learner["log_alpha"] = jnp.asarray(-0.7)
     state = TrainState(

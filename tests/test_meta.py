@@ -20,7 +20,7 @@ from espl_jax import expression as ex
 from espl_jax import pearl, reference_eval, rollout
 from espl_jax.envs.base import Environment
 from espl_jax.learner import Trainer
-from espl_jax.policies import Actor, GeneratedSymbolic
+from espl_jax.policies import Actor, GeneratedSymbolic, PolicyConfig
 from espl_jax.replay import Transition
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -84,7 +84,7 @@ def meta_trainer():
 
 def test_warmup_fills_both_buffers_of_every_training_task(meta_trainer):
     trainer, warm = meta_trainer
-    n = trainer.num_train_tasks
+    n = trainer.task_set.num_train
     np.testing.assert_array_equal(warm.buffer.size, [30] * n)
     np.testing.assert_array_equal(warm.encoder_buffer.size, [30] * n)
     assert int(warm.env_steps) == 30 * n
@@ -97,13 +97,14 @@ def test_an_iteration_clears_the_visited_encoder_buffers_and_refills_them_with_p
     meta_trainer,
 ):
     trainer, warm = meta_trainer
-    state, _ = jax.jit(trainer.collect_meta)(warm, jax.random.PRNGKey(4))
+    collect = jax.jit(lambda s, k: trainer.task_set.collect_tasks(trainer.actor, s, k))
+    state, _ = collect(warm, jax.random.PRNGKey(4))
     rl_size, enc_size = np.asarray(state.buffer.size), np.asarray(state.encoder_buffer.size)
     visited = np.flatnonzero(rl_size > 30)
     assert len(visited) == 3  # distinct tasks
     np.testing.assert_array_equal(rl_size[visited], 30 + 20 + 25)  # prior + posterior
     np.testing.assert_array_equal(enc_size[visited], 20)  # cleared, then prior data only
-    others = np.setdiff1d(np.arange(trainer.num_train_tasks), visited)
+    others = np.setdiff1d(np.arange(trainer.task_set.num_train), visited)
     np.testing.assert_array_equal(rl_size[others], 30)
     np.testing.assert_array_equal(enc_size[others], 30)
     for t in visited:  # the encoder buffer holds exactly the prior phase of the RL buffer
@@ -118,7 +119,7 @@ def test_an_iteration_clears_the_visited_encoder_buffers_and_refills_them_with_p
 
 def test_one_meta_update_trains_the_encoder_through_the_critic(meta_trainer):
     trainer, warm = meta_trainer
-    tau, l_min = trainer.schedules(jnp.asarray(0))
+    tau, l_min = trainer.iteration.schedules(jnp.asarray(0))
     new, metrics = jax.jit(trainer.sac.update)(warm, jax.random.PRNGKey(1), tau, l_min)
     assert np.isfinite(float(metrics["kl"])) and float(metrics["kl"]) >= 0
     moved = jax.tree.map(lambda a, b: float(jnp.abs(a - b).max()), new.encoder, warm.encoder)
@@ -206,7 +207,9 @@ def test_protocol_adapts_to_the_task_from_its_own_context():
 
 def test_csp_export_equals_the_generated_network_at_z(tmp_path):
     cfg = config_lib.from_mapping({"env": "cartpole_fl_ood", "layout": "csp"})
-    actor = GeneratedSymbolic(cfg, obs_dim=4, action_dim=1, latent_dim=5)
+    actor = GeneratedSymbolic(
+        config_lib.view(PolicyConfig, cfg), obs_dim=4, action_dim=1, latent_dim=5
+    )
     params = actor.init(jax.random.PRNGKey(0))
     # Ψ's last bias decides most paths whatever z is: a sparse formula that exports quickly.
     rng = np.random.default_rng(1)
@@ -234,9 +237,16 @@ def test_csp_bias_l1_adds_scale_times_mean_abs_generated_bias():
     """``bias_l1_scale`` on CSP: the extra loss grows by scale · mean |Φ_b(z)|, and its gradient
     reaches Φ_b's params (the generator, not a stored bias)."""
     base = {"env": "cartpole_fl_ood", "layout": "csp"}
-    plain = GeneratedSymbolic(config_lib.from_mapping(base), obs_dim=4, action_dim=1, latent_dim=5)
+    plain = GeneratedSymbolic(
+        config_lib.view(PolicyConfig, config_lib.from_mapping(base)),
+        obs_dim=4,
+        action_dim=1,
+        latent_dim=5,
+    )
     cfg = config_lib.from_mapping({**base, "bias_l1_scale": 2.0})
-    actor = GeneratedSymbolic(cfg, obs_dim=4, action_dim=1, latent_dim=5)
+    actor = GeneratedSymbolic(
+        config_lib.view(PolicyConfig, cfg), obs_dim=4, action_dim=1, latent_dim=5
+    )
     assert actor.has_extra_loss
     params = actor.init(jax.random.PRNGKey(0))
     z = jax.random.normal(jax.random.PRNGKey(1), (5,))

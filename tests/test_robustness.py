@@ -35,10 +35,10 @@ def test_finetune_freezes_p_at_the_exported_mask_and_keeps_it_there():
     state = trainer.init_seeds()
     before = jax.tree.map(lambda x: x[0], state.actor)
     # Before t_s the params are untouched; from t_s on p is the 0/1 exported mask.
-    untouched = trainer.freeze_mask(before, jnp.asarray(0))
+    untouched = trainer.iteration.freeze_mask(before, jnp.asarray(0))
     for got, want in zip(jax.tree.leaves(untouched), jax.tree.leaves(before), strict=True):
         np.testing.assert_array_equal(got, want)
-    frozen = trainer.freeze_mask(before, jnp.asarray(1))
+    frozen = trainer.iteration.freeze_mask(before, jnp.asarray(1))
     expected = selector.deterministic_mask(before["probs"], before["mean"]["w"])
     for got, want in zip(jax.tree.leaves(frozen["probs"]), jax.tree.leaves(expected), strict=True):
         np.testing.assert_array_equal(got, want)

@@ -28,8 +28,9 @@ from conftest import TINY, TINY_MLP, committed_checkpoints
 
 from espl_jax import checkpoint, envs, faults, reference_eval, replay, rollout, run, rundir
 from espl_jax import config as config_lib
-from espl_jax.policies import MLPActor, tanh_gaussian_log_prob
-from espl_jax.sac import SAC, TrainState
+from espl_jax.policies import MLPActor, PolicyConfig, tanh_gaussian_log_prob
+from espl_jax.sac import SAC, SACConfig, TrainState
+from espl_jax.task_sets import SingleTask
 
 REPO = Path(__file__).resolve().parent.parent
 pytestmark = pytest.mark.usefixtures("jax_cache")
@@ -416,12 +417,17 @@ def test_mlp_actor_run_has_no_formula(tmp_path):
 # SAC, replay and the policy distribution: unit checks without training -----------------------
 
 
+# The update's view of a single task (its batches, its (0,) latent): no env needed.
+ONE_TASK = SingleTask(env=None, steps_per_iteration=0, buffer_capacity=0, exploration_correlation=0)
+
+
 def _mlp_sac(**overrides):
     cfg = config_lib.from_mapping(
         {"actor": "mlp", "critic_hidden": [16, 16], "std_hidden": [8], "mlp_actor_hidden": [8],
          **overrides}
     )  # fmt: skip
-    return SAC(cfg, MLPActor(cfg, obs_dim=4, action_dim=1), encoder=None, num_tasks=1)
+    actor = MLPActor(config_lib.view(PolicyConfig, cfg), obs_dim=4, action_dim=1)
+    return SAC(config_lib.view(SACConfig, cfg), actor, ONE_TASK)
 
 
 def test_critic_target_bootstraps_unless_terminated():
@@ -468,7 +474,7 @@ def test_critic_target_bootstraps_unless_terminated():
 
 def _collect(cfg, env, zero_actor=False):
     """One collection of ``cfg.steps_per_iteration`` steps of a fresh MLP actor in ``env``."""
-    actor = MLPActor(cfg, env.obs_dim, env.action_dim)
+    actor = MLPActor(config_lib.view(PolicyConfig, cfg), env.obs_dim, env.action_dim)
     params = actor.init(jax.random.PRNGKey(0))
     if zero_actor:
         params = jax.tree.map(jnp.zeros_like, params)
