@@ -28,7 +28,14 @@ import numpy as np
 import pytest
 
 from espl_jax import envs
-from espl_jax.envs.native import HOOK_FIELDS, NativeEnv, float64_words, from_words, to_words
+from espl_jax.envs.native import (
+    HOOK_FIELDS,
+    LANES_PER_WORKER,
+    NativeEnv,
+    float64_words,
+    from_words,
+    to_words,
+)
 
 REPO = Path(__file__).resolve().parent.parent
 STEPS = 100
@@ -277,16 +284,24 @@ def test_threads_step_the_same_lanes_bit_for_bit():
     train, _ = family.tasks(0)
     one, two = NativeEnv(family.env.task, threads=1), NativeEnv(family.env.task, threads=2)
     assert two.threads == 2
+    lanes = 2 * LANES_PER_WORKER  # enough lanes for two workers
+    tasks = jax.tree.map(lambda x: x[np.arange(lanes) % len(x)], train)
     rows = np.stack(
-        [np.asarray(one.flat_params(jax.tree.map(lambda x, i=i: x[i], train))) for i in range(6)]
+        [
+            np.asarray(one.flat_params(jax.tree.map(lambda x, i=i: x[i], tasks)))
+            for i in range(lanes)
+        ]
     )
-    keys = jax.random.split(jax.random.PRNGKey(3), 6)
-    _, state = jax.vmap(one.reset)(keys, jax.tree.map(lambda x: x[:6], train))
+    keys = jax.random.split(jax.random.PRNGKey(3), lanes)
+    _, state = jax.vmap(one.reset)(keys, tasks)
     states = from_words(np.asarray(state.physics))
-    ctrl = np.random.default_rng(5).uniform(-1, 1, (6, one.action_dim))
+    ctrl = np.random.default_rng(5).uniform(-1, 1, (lanes, one.action_dim))
+    pool_map, used = two._pool.map, []
+    two._pool.map = lambda fn, *args: used.append(list(args[0])) or pool_map(fn, *args)
     for _ in range(20):
         new_one, values_one = one.host_step64(states, ctrl, rows)
         new_two, values_two = two.host_step64(states, ctrl, rows)
         np.testing.assert_array_equal(new_one, new_two)
         np.testing.assert_array_equal(values_one, values_two)
         states = new_one
+    assert used and all(workers == [0, 1] for workers in used)
