@@ -33,6 +33,12 @@ import jax.numpy as jnp
 
 from espl_jax import envs
 
+# The command line's "no compile cache" spelling (``espl_jax.cli.use_compilation_cache``): JAX
+# itself would read JAX_COMPILATION_CACHE_DIR=off as a directory named "off" and cache there,
+# hiding compile times.
+if os.environ.get("JAX_COMPILATION_CACHE_DIR", "").strip() == "off":
+    jax.config.update("jax_compilation_cache_dir", None)
+
 DEFAULT_ENVS = (
     "inverted_double_pendulum",
     "inverted_pendulum_swingup",
