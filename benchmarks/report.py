@@ -659,6 +659,7 @@ def planned_plots(results: list[Result]) -> list[str]:
 # iteration per backend, each from one results file measured in one run on one machine.
 PHYSICS_STEPS = "env_throughput_backends.json"
 PHYSICS_COST = "iteration_cost_backends.json"
+PHYSICS_RUN = "hopper_params_wall_by_backend.json"
 
 
 def physics_headline(results: list[Result], link: str) -> str:
@@ -704,6 +705,19 @@ def physics_headline(results: list[Result], link: str) -> str:
             )
         out.append(table(header, rows))
         out.append(f"\n{load_line(cost, link)}\n")
+    run = by_name.get(PHYSICS_RUN)
+    if run is not None:
+        wall = {r["physics"]: r for r in run.rows}
+        if {"mjx", "native"} <= set(wall):
+            mjx, native = wall["mjx"], wall["native"]
+            share = native["wall_seconds_training"] / mjx["wall_seconds_training"]
+            out.append(
+                f"\nA whole default `{native['env']}` run (seed {native['seed']}, compile "
+                f"included): {fmt(native['wall_seconds_training'])} s of training native against "
+                f"{fmt(mjx['wall_seconds_training'])} s MJX ({100 * share:.0f} %), test return "
+                f"{fmt(native['test_return'])} against {fmt(mjx['test_return'])}. "
+                f"[data]({link}#{anchor(run.title)})\n"
+            )
     return "".join(out)
 
 
