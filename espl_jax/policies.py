@@ -349,6 +349,11 @@ class GeneratedSymbolic(Actor):
     Params {"phi_w", "phi_b", "psi": one z → 64 → 64 → n MLP per action dim, "std"}. The task
     policy is {"mean": {"w", "b"}, "probs", "logits", "std", "z"}, laid out like ESPL's so the
     symbolic network, the masks and the export are the same code.
+
+    ``selector: l1`` is the paper's CSP_L1 ablation (App. "Ablation study for meta-RL"): no Ψ,
+    every path on, and L1 on Φ(z)'s w in L_select's place, as ESPL_l1 does for ESPL; the task
+    policy's "probs" are then all ones, so the export keeps every path with |w| above the
+    threshold.
     """
 
     @property
@@ -357,7 +362,7 @@ class GeneratedSymbolic(Actor):
 
     @property
     def uses_selector(self) -> bool:
-        return True
+        return self.config.selector == "probabilistic"
 
     def _generators(self) -> tuple[EnsembleMLP, EnsembleMLP, EnsembleMLP]:
         net, a, hidden = self.symbolic, self.action_dim, self.config.generator_hidden
@@ -372,12 +377,10 @@ class GeneratedSymbolic(Actor):
         z = jnp.zeros((self.latent_dim,))
         phi_w, phi_b, psi = self._generators()
         std = self._std_net().init(k_std, jnp.zeros((self.obs_dim + self.latent_dim,)))
-        return {
-            "phi_w": phi_w.init(k_w, z),
-            "phi_b": phi_b.init(k_b, z),
-            "psi": psi.init(k_psi, z),
-            "std": std,
-        }
+        params = {"phi_w": phi_w.init(k_w, z), "phi_b": phi_b.init(k_b, z), "std": std}
+        if self.uses_selector:
+            params["psi"] = psi.init(k_psi, z)
+        return params
 
     def _split(self, flat: jax.Array, rows_only: bool) -> list[jax.Array]:
         """(A, total) → one (A, rows, cols) array per layer, or (A, rows) for biases."""
@@ -391,12 +394,15 @@ class GeneratedSymbolic(Actor):
 
     def generate(self, params, z):
         phi_w, phi_b, psi = self._generators()
+        mean = {
+            "w": self._split(phi_w.apply(params["phi_w"], z), rows_only=False),
+            "b": self._split(phi_b.apply(params["phi_b"], z), rows_only=True),
+        }
+        if not self.uses_selector:  # CSP_L1: every path on
+            return {"mean": mean, "probs": selector.ones_mask(mean["w"]), "logits": [], "z": z}
         logits = self._split(psi.apply(params["psi"], z), rows_only=False)
         return {
-            "mean": {
-                "w": self._split(phi_w.apply(params["phi_w"], z), rows_only=False),
-                "b": self._split(phi_b.apply(params["phi_b"], z), rows_only=True),
-            },
+            "mean": mean,
             "probs": [jax.nn.sigmoid(s) for s in logits],
             "logits": logits,
             "z": z,
@@ -411,21 +417,28 @@ class GeneratedSymbolic(Actor):
         return mean, log_std, penalty
 
     def train_mask(self, key, policy, tau):
+        if not self.uses_selector:
+            return policy["probs"]  # all ones
         if self.config.csp_relaxed_mask == "soft":  # the authors' code: no straight-through
             return selector.soft_gumbel_sigmoid_mask(key, policy["probs"], tau)
         return selector.gumbel_sigmoid_mask(key, policy["probs"], tau)
 
     def collect_mask(self, key, policy):
+        if not self.uses_selector:
+            return policy["probs"]  # all ones
         return selector.bernoulli_mask(key, policy["probs"])
 
     def eval_mask(self, policy):
         return selector.deterministic_mask(policy["probs"], policy["mean"]["w"])
 
     def regularizers(self, policy, l_min):
-        """L_select on σ(Ψ(z)); the authors' logit clamp Σ relu(|s| − 6), L1 on Φ's w and
-        (``bias_l1_scale``, as for ESPL) on Φ's b."""
+        """L_select on σ(Ψ(z)) (CSP_L1: Σ|w| of Φ(z)); the authors' logit clamp
+        Σ relu(|s| − 6), L1 on Φ's w and (``bias_l1_scale``, as for ESPL) on Φ's b."""
         cfg = self.config
-        select = selector.select_loss(policy["probs"], l_min)
+        if self.uses_selector:
+            select = selector.select_loss(policy["probs"], l_min)
+        else:
+            select = selector.l1_loss(policy["mean"]["w"])
         clamp = sum(jnp.sum(jax.nn.relu(jnp.abs(s) - LOGIT_BOUND)) for s in policy["logits"])
         l1 = _mean_abs(policy["mean"]["w"])
         extra = cfg.logit_clamp_scale * clamp + cfg.weight_l1_scale * l1
@@ -440,6 +453,8 @@ class GeneratedSymbolic(Actor):
         return cfg.logit_clamp_scale > 0 or cfg.weight_l1_scale > 0 or cfg.bias_l1_scale > 0
 
     def l0_ratio(self, policy):
+        if not self.uses_selector:
+            return jnp.ones(())
         return selector.expected_l0(policy["probs"]) / selector.count(policy["probs"])
 
 

@@ -269,6 +269,37 @@ def test_csp_bias_l1_adds_scale_times_mean_abs_generated_bias():
         assert all(np.all(np.asarray(g) == 0) for g in jax.tree.leaves(grads[name]))
 
 
+def test_csp_l1_ablation_has_no_selector_every_path_on_and_l1_on_generated_weights():
+    """``selector: l1`` on CSP is the paper's CSP_L1: no Ψ, every mask all ones (train, collect,
+    export), and L_select's place taken by Σ|Φ_w(z)|, whose gradient reaches Φ_w. (It used to
+    be ignored: CSP_l1 trained CSP.)"""
+    cfg = config_lib.from_mapping({"env": "cartpole_fl_ood", "layout": "csp", "selector": "l1"})
+    actor = GeneratedSymbolic(
+        config_lib.view(PolicyConfig, cfg), obs_dim=4, action_dim=1, latent_dim=5
+    )
+    assert not actor.uses_selector
+    params = actor.init(jax.random.PRNGKey(0))
+    assert "psi" not in params
+    z = jax.random.normal(jax.random.PRNGKey(1), (5,))
+    policy = actor.at(params, z)
+    ones = [np.ones(np.shape(w)) for w in policy["mean"]["w"]]
+    for mask in (
+        actor.train_mask(jax.random.PRNGKey(2), policy, 0.5),
+        actor.collect_mask(jax.random.PRNGKey(3), policy),
+    ):
+        for m, o in zip(mask, ones, strict=True):
+            np.testing.assert_array_equal(m, o)
+    exported = actor.eval_mask(policy)
+    for m, w in zip(exported, policy["mean"]["w"], strict=True):
+        np.testing.assert_array_equal(np.asarray(m) == 1, np.abs(np.asarray(w)) > 1e-3)
+    select, _ = actor.regularizers(policy, jnp.asarray(0.01))
+    weights = sum(float(np.sum(np.abs(np.asarray(w)))) for w in policy["mean"]["w"])
+    np.testing.assert_allclose(float(select), weights, rtol=1e-5)
+    assert float(actor.l0_ratio(policy)) == 1.0
+    grads = jax.grad(lambda p: actor.regularizers(actor.at(p, z), 0.01)[0])(params)
+    assert any(np.any(np.asarray(g) != 0) for g in jax.tree.leaves(grads["phi_w"]))
+
+
 # The single-task case after the restructure ------------------------------------------------------
 
 
