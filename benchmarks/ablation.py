@@ -87,11 +87,14 @@ def run_block(env: str, variant: str, changes: dict, block: list[int], out: Path
     run_dir = run_dir_for(out, env, variant, block)
     if (run_dir / "eval.json").is_file():
         return run_dir
-    config = out / f"{env}-{variant}.yaml"
-    config.write_text("".join(f"{k}: {v}\n" for k, v in changes.items()))
-    cmd = [sys.executable, "-m", "espl_jax.train", "--env", env, "--seed", str(block[0])]
-    cmd += ["--seeds", str(len(block)), "--config", str(config), "--no-progress"]
-    cmd += ["--resume", str(run_dir)] if run_dir.exists() else ["--out", str(run_dir)]
+    cmd = [sys.executable, "-m", "espl_jax.train", "--no-progress"]
+    if run_dir.exists():  # a killed sweep: the run continues with the config it saved
+        cmd += ["--resume", str(run_dir)]
+    else:
+        config = out / f"{env}-{variant}.yaml"
+        config.write_text("".join(f"{k}: {v}\n" for k, v in changes.items()))
+        cmd += ["--env", env, "--seed", str(block[0]), "--seeds", str(len(block))]
+        cmd += ["--config", str(config), "--out", str(run_dir)]
     subprocess.run(cmd, check=True)
     return run_dir
 
