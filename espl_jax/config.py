@@ -239,7 +239,8 @@ class Config:
     )
     selector: str = SYMBOLIC(
         "probabilistic",
-        "Path selector: probabilistic, or l1 (ablation).",
+        "Path selector: probabilistic, or l1 (the ablations ESPL_l1 and CSP_L1: every path on, "
+        "L1 on the weights in L_select's place).",
         choice("probabilistic", "l1"),
     )
     penalty_scale: float = SYMBOLIC(1.0, "α1.", non_negative)
