@@ -7,11 +7,13 @@ Every figure the docs show is read from a results file; nothing is typed into a 
 
 A results file is one JSON object: ``command``, ``commit``, ``date``, ``machine`` and ``rows``
 (one dict per seed, env or setting), as ``benchmarks/env_throughput.py``'s ``write_result``
-writes it, optionally with ``kind``, ``title``, ``source``, ``config_hash``, ``note`` and (single
-task) ``bar``. ``kind`` picks the page: ``single_task``, ``meta_rl``, ``deployment``,
-``throughput`` or ``cost``, ``ablation``, ``paper`` (the paper's own figures, shown beside
-ours); without it the kind is inferred from the command (``run_summary.py``: single task or
-meta-RL by the rows' keys; ``deploy.py``: deployment; ``ablation``: ablation; else throughput).
+writes it, optionally with ``kind``, ``title``, ``source``, ``config_hash``, ``note``, (single
+task) ``bar`` and ``headline`` (false: a probe of another budget or config, shown on its page
+but not in the README's headline tables). ``kind`` picks the page: ``single_task``,
+``meta_rl``, ``deployment``, ``throughput`` or ``cost``, ``ablation``, ``paper`` (the paper's
+own figures, shown beside ours); without it the kind is inferred from the command
+(``run_summary.py``: single task or meta-RL by the rows' keys; ``deploy.py``: deployment;
+``ablation``: ablation; else throughput).
 A new file of the same shape slots into its page with no change here.
 
 The output is deterministic (files in name order, no generation date), so ``--check`` compares
@@ -273,7 +275,11 @@ def paper_rows(results: list[Result], table_name: str) -> dict[str, dict]:
 
 
 def single_headline(results: list[Result], link: str) -> str:
-    gs = [g for g in groups(results, "single_task", single_return) if g.actor == "symbolic"]
+    gs = [
+        g
+        for g in groups(results, "single_task", single_return)
+        if g.actor == "symbolic" and g.res.data.get("headline", True)
+    ]
     bar, paper = bars(results), paper_rows(results, "single_task")
     rows = []
     for env in order({g.env for g in gs}, SINGLE_ENVS):
@@ -398,7 +404,8 @@ def meta_cell(values: tuple) -> str:
 
 
 def meta_headline(results: list[Result], link: str) -> str:
-    gs = groups(results, "meta_rl", meta_value)
+    # A probe of another budget or config ("headline": false) is on the page, not in the README.
+    gs = [g for g in groups(results, "meta_rl", meta_value) if g.res.data.get("headline", True)]
     keys = sorted({(g.env, g.physics, g.res.name) for g in gs}, key=lambda k: k[2])
     rows = []
     for env in order({k[0] for k in keys}, FAMILIES):

@@ -77,6 +77,18 @@ def test_a_new_results_file_of_the_same_schema_shows_up(tree: Path):
     assert check(tree).returncode == 0
 
 
+def test_a_probe_is_on_its_page_but_not_in_the_readme(tree: Path):
+    # "headline": false keeps a run of another budget out of the README's headline table.
+    probe = json.loads((tree / "results" / "hopper_params_10x_probe.json").read_text())
+    assert probe["headline"] is False
+    page, readme = (tree / "docs" / "meta_rl.md").read_text(), (tree / "README.md").read_text()
+    assert "309.92" in page and "309.92" not in readme
+    probe["headline"] = True
+    (tree / "results" / "hopper_params_10x_probe.json").write_text(json.dumps(probe))
+    subprocess.run([sys.executable, str(REPORT), "--root", str(tree)], check=True, timeout=60)
+    assert "309.92" in (tree / "README.md").read_text()
+
+
 def test_the_meta_rl_deployment_table_sits_beside_the_papers(tree: Path):
     # deploy.py --run CSP_DIR rows of a family: CSP (median test task), PEARL, Hyper per impl.
     def row(method: str, impl: str, flops: int, ms: float, **extra) -> str:
