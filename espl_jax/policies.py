@@ -189,7 +189,16 @@ class Actor:
 
     def l0_ratio(self, policy: TaskPolicy) -> jax.Array:
         """E||m||_0 / N, the fraction of paths the selector keeps in expectation (1 without one)."""
-        return jnp.ones(())
+        if not self.uses_selector:
+            return jnp.ones(())
+        return selector.expected_l0(policy["probs"]) / selector.count(policy["probs"])
+
+    def select_loss(self, policy: TaskPolicy, l_min: jax.Array) -> jax.Array:
+        """L_select on the task policy's path probabilities; without a selector (the ESPL_l1 and
+        CSP_L1 ablations) L1 on the symbolic weights w takes its place."""
+        if self.uses_selector:
+            return selector.select_loss(policy["probs"], l_min)
+        return selector.l1_loss(policy["mean"]["w"])
 
     # Acting (shared) --------------------------------------------------------------------------
 
@@ -294,10 +303,7 @@ class StoredSymbolic(Actor):
         return selector.deterministic_mask(self._probs(policy), policy["mean"]["w"])
 
     def regularizers(self, policy, l_min):
-        if self.uses_selector:
-            select = selector.select_loss(policy["probs"], l_min)
-        else:  # the ESPL_l1 ablation: L1 on w replaces L_select
-            select = selector.l1_loss(policy["mean"]["w"])
+        select = self.select_loss(policy, l_min)
         extra = jnp.zeros(())
         if self.has_extra_loss:
             extra = self.config.bias_l1_scale * _mean_abs(policy["mean"]["b"])
@@ -316,11 +322,6 @@ class StoredSymbolic(Actor):
             return params
         probs = selector.deterministic_mask(params["probs"], params["mean"]["w"])
         return {**params, "probs": probs}
-
-    def l0_ratio(self, policy):
-        if not self.uses_selector:
-            return jnp.ones(())
-        return selector.expected_l0(policy["probs"]) / selector.count(policy["probs"])
 
 
 @dataclass(frozen=True)
@@ -435,10 +436,7 @@ class GeneratedSymbolic(Actor):
         """L_select on σ(Ψ(z)) (CSP_L1: Σ|w| of Φ(z)); the authors' logit clamp
         Σ relu(|s| − 6), L1 on Φ's w and (``bias_l1_scale``, as for ESPL) on Φ's b."""
         cfg = self.config
-        if self.uses_selector:
-            select = selector.select_loss(policy["probs"], l_min)
-        else:
-            select = selector.l1_loss(policy["mean"]["w"])
+        select = self.select_loss(policy, l_min)
         clamp = sum(jnp.sum(jax.nn.relu(jnp.abs(s) - LOGIT_BOUND)) for s in policy["logits"])
         l1 = _mean_abs(policy["mean"]["w"])
         extra = cfg.logit_clamp_scale * clamp + cfg.weight_l1_scale * l1
@@ -451,11 +449,6 @@ class GeneratedSymbolic(Actor):
     def has_extra_loss(self) -> bool:
         cfg = self.config
         return cfg.logit_clamp_scale > 0 or cfg.weight_l1_scale > 0 or cfg.bias_l1_scale > 0
-
-    def l0_ratio(self, policy):
-        if not self.uses_selector:
-            return jnp.ones(())
-        return selector.expected_l0(policy["probs"]) / selector.count(policy["probs"])
 
 
 @dataclass(frozen=True)
