@@ -32,12 +32,11 @@ import jax
 import jax.numpy as jnp
 
 from espl_jax import envs
+from espl_jax.cli import cache_turned_off
 
-# The command line's "no compile cache" spelling (``espl_jax.cli.use_compilation_cache``): JAX
-# itself would read JAX_COMPILATION_CACHE_DIR=off as a directory named "off" and cache there,
-# hiding compile times.
-if os.environ.get("JAX_COMPILATION_CACHE_DIR", "").strip() == "off":
-    jax.config.update("jax_compilation_cache_dir", None)
+# JAX_COMPILATION_CACHE_DIR=off means no cache here as on the command line (JAX alone would cache
+# into a folder named "off" and hide compile times).
+cache_turned_off()
 
 DEFAULT_ENVS = (
     "inverted_double_pendulum",

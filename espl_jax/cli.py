@@ -38,6 +38,18 @@ def check_path(value: str | None, name: str) -> None:
         raise UserError(f"{name} is empty: it names no file or directory")
 
 
+def cache_turned_off() -> bool:
+    """Whether ``JAX_COMPILATION_CACHE_DIR`` is empty or "off", the spelling for "no cache"; if
+    so, JAX's own reading of the variable (a folder named "off") is undone."""
+    chosen = os.environ.get("JAX_COMPILATION_CACHE_DIR")
+    if chosen is None or chosen.strip() not in ("", "off"):
+        return False
+    import jax
+
+    jax.config.update("jax_compilation_cache_dir", None)
+    return True
+
+
 def use_compilation_cache() -> str | None:
     """Keep XLA's compiled programs on disk between runs, unless the user chose otherwise.
 
@@ -52,10 +64,7 @@ def use_compilation_cache() -> str | None:
 
     chosen = os.environ.get("JAX_COMPILATION_CACHE_DIR")
     if chosen is not None:
-        if chosen.strip() in ("", "off"):
-            jax.config.update("jax_compilation_cache_dir", None)  # JAX read the variable too
-            return None
-        return chosen
+        return None if cache_turned_off() else chosen
     base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
     path = Path(base) / "espl_jax" / "xla"
     try:
