@@ -5,7 +5,8 @@ mechanics and the env's JAX-side work (action, reset draws, selects). Issue 31's
 
     python benchmarks/native_step_profile.py hopper
 
-Not part of the test suite. Keep it in step with ``envs/native.py``'s ``host_step64``.
+Not part of the test suite. Keep it in step with ``envs/native.py``'s ``host_step`` and
+``host_step64``.
 """
 
 import sys
@@ -18,7 +19,7 @@ import numpy as np
 from env_throughput import make_run
 
 from espl_jax import envs
-from espl_jax.envs.native import HOOK_FIELDS, from_words, to_words
+from espl_jax.envs.native import STATE_SPEC, STEP_SPEC
 
 name = sys.argv[1]
 env = envs.make(name, physics="native")
@@ -31,40 +32,44 @@ def tick(k, t0):
     return t1
 
 
-def host_step(words, ctrl, rows):
+def host_step(packed):
     t = time.perf_counter()
-    words, ctrl, rows = np.asarray(words), np.asarray(ctrl), np.asarray(rows)
-    batch = ctrl.shape[:-1]
-    state = from_words(words).reshape(-1, env.state_size)
-    ctrl = np.asarray(ctrl.reshape(len(state), -1), np.float64)
-    rows = rows.reshape(len(state), -1)
+    packed = np.asarray(packed)
+    flat = packed.reshape(-1, packed.shape[-1])
+    words = 2 * env.state_size
+    ctrl_end = words + env.action_dim
+    state = np.ascontiguousarray(flat[:, :words]).view(np.float64)
+    ctrl = np.ascontiguousarray(flat[:, words:ctrl_end]).view(np.float32)
+    rows = np.ascontiguousarray(flat[:, ctrl_end:]).view(np.float32)
     t = tick("in", t)
     n = len(state)
     task = env.task
-    after = env._hook_view(env._datas[0], n)
-    new = np.empty_like(state)
-    models = [env.host_model(row) for row in rows]
+    loaded = np.concatenate([state, np.asarray(ctrl, np.float64)], axis=1)
+    ctrl = loaded[:, env.state_size :]
+    extra = {f: np.empty((n, *getattr(env._datas[0], f).shape)) for f in env._extra_fields}
+    new = np.empty_like(loaded[:, : env.state_size])
+    models, lanes = env._batch(rows)
     t = tick("setup", t)
     data = env._datas[0]
     for i in range(n):
-        env._load(data, state[i])
-        data.ctrl[:] = ctrl[i]
+        mujoco.mj_setState(models[i], data, loaded[i], STEP_SPEC)
         t = tick("load", t)
         mujoco.mj_step(models[i], data, nstep=task.frame_skip)
         t = tick("physics", t)
-        env._save(data, new[i])
-        for nm in HOOK_FIELDS:
-            getattr(after, nm)[i] = getattr(data, nm)
+        mujoco.mj_getState(models[i], data, new[i], STATE_SPEC)
+        for name, out in extra.items():
+            out[i] = getattr(data, name)
         t = tick("save", t)
-    before = SimpleNamespace(qpos=state[:, env._slices["qpos"]])
-    lanes = env._lane_params(rows)
-    t = tick("lanes", t)
+    sl = env._slices
+    before = SimpleNamespace(qpos=state[:, sl["qpos"]])
+    after = SimpleNamespace(qpos=new[:, sl["qpos"]], qvel=new[:, sl["qvel"]], **extra)
     obs = task._obs(after, np)
     reward, terminated, info = task._reward(before, after, ctrl, lanes, np)
     terms = [reward, terminated, *(info[k] for k in env._info_keys)]
     values = np.concatenate([obs, np.stack(terms, axis=-1)], axis=-1)
     t = tick("obs_reward", t)
-    out = to_words(new).reshape(words.shape), values.astype(np.float32).reshape(*batch, -1)
+    out = np.concatenate([new.view(np.uint32), values.astype(np.float32).view(np.uint32)], 1)
+    out = out.reshape(*packed.shape[:-1], -1)
     tick("out", t)
     return out
 

@@ -42,7 +42,18 @@ from espl_jax.envs.mjx import MjxEnv, MjxParams
 # The MjxParams fields that are model fields (a family's params may carry task terms too, such
 # as cheetah's target velocity, which only the reward reads).
 MODEL_FIELDS = tuple(MjxParams.__dataclass_fields__)
-HOOK_FIELDS = ("qpos", "qvel", "qfrc_constraint", "site_xpos")  # what obs and reward read
+HOOK_FIELDS = ("qpos", "qvel", "qfrc_constraint", "site_xpos")  # what obs and reward may read
+# ``NativeState.physics`` is MuJoCo's state vector of this signature, [time, qpos, qvel, act,
+# qacc_warmstart] (``mj_getState``; no history: these models have no delays); a step loads it
+# with the ctrl appended in one ``mj_setState``.
+STATE_SPEC = (
+    mujoco.mjtState.mjSTATE_TIME
+    | mujoco.mjtState.mjSTATE_QPOS
+    | mujoco.mjtState.mjSTATE_QVEL
+    | mujoco.mjtState.mjSTATE_ACT
+    | mujoco.mjtState.mjSTATE_WARMSTART
+)
+STEP_SPEC = STATE_SPEC | mujoco.mjtState.mjSTATE_CTRL
 MAX_CACHED_MODELS = 512
 MAX_THREADS = 4  # a run has at most a few hundred distinct tasks
 # Handing lanes to a second worker costs ~40 us (the pool) and pays from about 8 lanes on: idle
@@ -102,12 +113,22 @@ def from_words(w: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(w, np.uint32).view(np.float64)[..., 0]
 
 
+class _FieldsRead(SimpleNamespace):
+    """A hook view that records the fields the task's hooks read (``NativeEnv.__init__``)."""
+
+    def __getattribute__(self, name: str):
+        if not name.startswith("_"):
+            object.__getattribute__(self, "_read").add(name)
+        return object.__getattribute__(self, name)
+
+
 class NativeEnv(Environment):
     """A MuJoCo task of ``envs/mjx.py`` stepped by MuJoCo's C engine (module docstring).
 
-    Host calls exchange few, flat arrays (each array a callback passes costs ~20 us): the
-    state's words, the action, the params as one float32 row, and back the new words and one
-    float32 row ``[obs, reward, terminated, info...]``.
+    A step is one host call with one flat uint32 array in and one out (each array a callback
+    passes costs ~15 us, as much as a lane's physics): in, the state's words, the action's and
+    the params' float32 bits; out, the new words and the float32 bits of ``[obs, reward,
+    terminated, info...]``.
 
     Args:
         task: the MJX env whose task this is (model, hooks; its MJX model is never built).
@@ -126,25 +147,32 @@ class NativeEnv(Environment):
         ends = np.cumsum(list(sizes.values()))
         self._slices = {k: slice(e - n, e) for (k, n), e in zip(sizes.items(), ends, strict=True)}
         self.state_size = int(ends[-1])
+        if mujoco.mj_stateSize(m, STATE_SPEC) != self.state_size:
+            raise ValueError(f"{task.name}: MuJoCo's state has parts NativeState does not hold")
         default = self.default_params
         self._param_shapes = {
             f: np.shape(getattr(default, f)) for f in default.__dataclass_fields__
         }
-        # One MjData and one model cache, used under a lock: XLA may call back from several
-        # threads (one per device), and its callback threads come and go, so MuJoCo objects
-        # must not live in thread-locals (their teardown outside Python crashes).
+        self._n_params = sum(int(np.prod(shape)) for shape in self._param_shapes.values())
+        # One MjData per worker and one model cache, used under a lock: XLA may call back from
+        # several threads (one per device), and its callback threads come and go, so MuJoCo
+        # objects must not live in thread-locals (their teardown outside Python crashes).
         self._lock = threading.Lock()
         self._cache: dict[bytes, mujoco.MjModel] = {}
+        self._batches: dict[bytes, tuple[list[mujoco.MjModel], SimpleNamespace]] = {}
         # mj_step releases the GIL: a batch's lanes are split over ``threads`` workers, each
         # with its own MjData (while the callback runs, XLA's own threads wait for it).
         self.threads = max(1, threads or min(MAX_THREADS, len(os.sched_getaffinity(0))))
         self._datas = [mujoco.MjData(m) for _ in range(self.threads)]
-        self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
-        # the reward's info keys, from one reward of the model's own state on the host
-        view = self._hook_view(self._datas[0], 1)
+        self._pool = ThreadPoolExecutor(self.threads - 1) if self.threads > 1 else None
+        # The reward's info keys and the data fields beyond qpos/qvel the hooks read (copied out
+        # of MjData after each lane's step), from one call of the hooks on the model's state.
+        view = _FieldsRead(_read=set(), **vars(self._hook_view(self._datas[0], 1)))
         lanes = self._lane_params(self.flat_params(default)[None])
+        task._obs(view, np)
         _, _, info = task._reward(view, view, np.zeros((1, m.nu)), lanes, np)
         self._info_keys = tuple(info)
+        self._extra_fields = tuple(f for f in HOOK_FIELDS[2:] if f in view._read)
 
     @property
     def default_params(self) -> MjxParams:
@@ -192,40 +220,47 @@ class NativeEnv(Environment):
             self._cache[key] = model
         return model
 
+    def _batch(self, rows: np.ndarray) -> tuple[list[mujoco.MjModel], SimpleNamespace]:
+        """The models and hook params of a batch's rows [n, P] float32, cached by the whole
+        batch (a collection steps the same tasks every step); call under the lock."""
+        key = rows.tobytes()
+        batch = self._batches.get(key)
+        if batch is None:
+            if len(self._batches) >= MAX_CACHED_MODELS:
+                self._batches.clear()
+            rows = np.array(rows, np.float32)
+            batch = [self.host_model(row) for row in rows], self._lane_params(rows)
+            self._batches[key] = batch
+        return batch
+
     # Host side ----------------------------------------------------------------------------
 
     def _load(self, data: mujoco.MjData, state: np.ndarray) -> None:
         """One float64 state vector into ``data``."""
-        sl = self._slices
-        data.time = state[0]
-        data.qpos[:] = state[sl["qpos"]]
-        data.qvel[:] = state[sl["qvel"]]
-        data.act[:] = state[sl["act"]]
-        data.qacc_warmstart[:] = state[sl["warmstart"]]
+        mujoco.mj_setState(self.model, data, state, STATE_SPEC)
 
     def _save(self, data: mujoco.MjData, state: np.ndarray) -> None:
-        sl = self._slices
-        state[0] = data.time
-        state[sl["qpos"]] = data.qpos
-        state[sl["qvel"]] = data.qvel
-        state[sl["act"]] = data.act
-        state[sl["warmstart"]] = data.qacc_warmstart
+        mujoco.mj_getState(self.model, data, state, STATE_SPEC)
 
     @staticmethod
     def _hook_view(data: mujoco.MjData, n: int) -> SimpleNamespace:
         """Empty float64 arrays [n, ...] for the data fields the task hooks read."""
         return SimpleNamespace(**{k: np.zeros((n, *getattr(data, k).shape)) for k in HOOK_FIELDS})
 
-    def host_step(self, words: np.ndarray, ctrl: np.ndarray, rows: np.ndarray):
-        """Every lane's step, batch axes leading: (new words, float32 [obs, reward, terminated,
-        info...]); the callback behind ``step``."""
-        words, ctrl, rows = np.asarray(words), np.asarray(ctrl), np.asarray(rows)
-        batch = ctrl.shape[:-1]
-        state = from_words(words).reshape(-1, self.state_size)
-        new, values = self.host_step64(
-            state, ctrl.reshape(len(state), -1), rows.reshape(len(state), -1)
-        )
-        return to_words(new).reshape(words.shape), values.astype(np.float32).reshape(*batch, -1)
+    def host_step(self, packed: np.ndarray) -> np.ndarray:
+        """Every lane's step, batch axes leading: uint32 ``[words, ctrl bits, params bits]`` ->
+        ``[new words, float32 bits of obs, reward, terminated, info...]``; the callback behind
+        ``step``."""
+        packed = np.asarray(packed)
+        flat = packed.reshape(-1, packed.shape[-1])
+        words = 2 * self.state_size
+        ctrl_end = words + self.action_dim
+        state = np.ascontiguousarray(flat[:, :words]).view(np.float64)
+        ctrl = np.ascontiguousarray(flat[:, words:ctrl_end]).view(np.float32)
+        rows = np.ascontiguousarray(flat[:, ctrl_end:]).view(np.float32)
+        new, values = self.host_step64(state, ctrl, rows)
+        out = np.concatenate([new.view(np.uint32), values.astype(np.float32).view(np.uint32)], 1)
+        return out.reshape(*packed.shape[:-1], -1)
 
     def host_step64(
         self, state: np.ndarray, ctrl: np.ndarray, rows: np.ndarray
@@ -233,65 +268,78 @@ class NativeEnv(Environment):
         """``host_step`` in float64 for lanes [n]: states [n, state_size] (``NativeState``'s
         vector), ctrl [n, nu] in env units, params rows [n, P] -> (new states, values [n, V])."""
         n = len(state)
-        ctrl = np.asarray(ctrl, np.float64)
         task = self.task
+        loaded = np.concatenate([state, np.asarray(ctrl, np.float64)], axis=1)  # STEP_SPEC
+        ctrl = loaded[:, self.state_size :]
         substep = getattr(task, "_native_before_substep", None)
-        after = self._hook_view(self._datas[0], n)
-        new = np.empty_like(state)
+        extra = {f: np.empty((n, *getattr(self._datas[0], f).shape)) for f in self._extra_fields}
+        new = np.empty_like(loaded[:, : self.state_size])
 
-        def run(worker: int, lanes: range) -> None:  # rows of new/after are the lanes' own
+        def run(worker: int, lanes: range) -> None:  # rows of new/extra are the lanes' own
             data = self._datas[worker]
             for i in lanes:
                 model = models[i]
-                self._load(data, state[i])
-                data.ctrl[:] = ctrl[i]
+                mujoco.mj_setState(model, data, loaded[i], STEP_SPEC)
                 if substep is None:
                     mujoco.mj_step(model, data, nstep=task.frame_skip)
                 else:
                     for _ in range(task.frame_skip):
                         substep(model, data)
                         mujoco.mj_step(model, data)
-                self._save(data, new[i])
-                for name in HOOK_FIELDS:
-                    getattr(after, name)[i] = getattr(data, name)
+                mujoco.mj_getState(model, data, new[i], STATE_SPEC)
+                for name, out in extra.items():
+                    out[i] = getattr(data, name)
 
         with self._lock:
-            models = [self.host_model(row) for row in rows]
+            models, lanes = self._batch(rows)
             # A before-substep hook edits the (shared, cached) model: one thread then.
             workers = 1 if substep is not None else min(len(self._datas), n // LANES_PER_WORKER)
             if workers <= 1:
                 run(0, range(n))
-            else:
-                chunks = np.array_split(np.arange(n), workers)
-                list(self._pool.map(run, range(workers), [range(c[0], c[-1] + 1) for c in chunks]))
-        before = SimpleNamespace(qpos=state[:, self._slices["qpos"]])
-        lanes = self._lane_params(rows)
+            else:  # the calling thread steps the first chunk, the pool the others
+                chunks = [range(c[0], c[-1] + 1) for c in np.array_split(np.arange(n), workers)]
+                others = [self._pool.submit(run, w, c) for w, c in enumerate(chunks) if w]
+                run(0, chunks[0])
+                for done in others:
+                    done.result()
+        sl = self._slices
+        before = SimpleNamespace(qpos=state[:, sl["qpos"]])
+        after = SimpleNamespace(qpos=new[:, sl["qpos"]], qvel=new[:, sl["qvel"]], **extra)
         obs = task._obs(after, np)
         reward, terminated, info = task._reward(before, after, ctrl, lanes, np)
         terms = [reward, terminated, *(info[k] for k in self._info_keys)]
         return new, np.concatenate([obs, np.stack(terms, axis=-1)], axis=-1)
 
-    def host_forward_obs(self, words: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    def host_forward_obs(self, packed: np.ndarray) -> np.ndarray:
         """Every lane's observation after ``mj_forward`` (for tasks whose first observation
-        needs derived quantities, as gymnasium's ``set_state`` computes them)."""
-        words, rows = np.asarray(words), np.asarray(rows)
-        batch = words.shape[:-2]
-        n = int(np.prod(batch))
-        state = from_words(words).reshape(n, self.state_size)
-        rows = rows.reshape(n, -1)
+        needs derived quantities, as gymnasium's ``set_state`` computes them): uint32 ``[words,
+        params bits]`` -> float32 obs."""
+        packed = np.asarray(packed)
+        flat = packed.reshape(-1, packed.shape[-1])
+        words = 2 * self.state_size
+        state = np.ascontiguousarray(flat[:, :words]).view(np.float64)
+        rows = np.ascontiguousarray(flat[:, words:]).view(np.float32)
+        n = len(state)
         with self._lock:
+            models, _ = self._batch(rows)
             data = self._datas[0]
             fields = self._hook_view(data, n)
             for i in range(n):
-                model = self.host_model(rows[i])
                 self._load(data, state[i])
-                mujoco.mj_forward(model, data)
+                mujoco.mj_forward(models[i], data)
                 for name in HOOK_FIELDS:
                     getattr(fields, name)[i] = getattr(data, name)
         obs = self.task._obs(fields, np)
-        return np.asarray(obs, np.float32).reshape(*batch, self.obs_dim)
+        return np.asarray(obs, np.float32).reshape(*packed.shape[:-1], self.obs_dim)
 
     # JAX side ------------------------------------------------------------------------------
+
+    def _packed(self, physics: jax.Array, *floats: jax.Array) -> jax.Array:
+        """The state's words and float32 arrays' bits as one flat uint32 array."""
+        bits = [
+            jax.lax.bitcast_convert_type(jnp.asarray(x, jnp.float32), jnp.uint32) for x in floats
+        ]
+        return jnp.concatenate([physics.reshape(-1), *bits])
 
     def reset(self, key: PRNGKey, params: MjxParams) -> tuple[jax.Array, NativeState]:
         """The MJX env's reset distribution (``_init_qpos_qvel``), zero warm start and time.
@@ -310,8 +358,7 @@ class NativeEnv(Environment):
             obs = jax.pure_callback(
                 self.host_forward_obs,
                 jax.ShapeDtypeStruct((self.obs_dim,), jnp.float32),
-                physics,
-                self.flat_params(params),
+                self._packed(physics, self.flat_params(params)),
                 vmap_method="broadcast_all",
             )
         else:
@@ -325,18 +372,16 @@ class NativeEnv(Environment):
         (gymnasium's ``do_simulation``); obs, reward and termination from the task's hooks in
         float64, returned as float32."""
         del key
+        words = 2 * self.state_size
         n_values = self.obs_dim + 2 + len(self._info_keys)
-        physics, values = jax.pure_callback(
+        out = jax.pure_callback(
             self.host_step,
-            (
-                jax.ShapeDtypeStruct(state.physics.shape, jnp.uint32),
-                jax.ShapeDtypeStruct((n_values,), jnp.float32),
-            ),
-            state.physics,
-            self.scale_action(action),
-            self.flat_params(params),
+            jax.ShapeDtypeStruct((words + n_values,), jnp.uint32),
+            self._packed(state.physics, self.scale_action(action), self.flat_params(params)),
             vmap_method="broadcast_all",
         )
+        physics = out[:words].reshape(state.physics.shape)
+        values = jax.lax.bitcast_convert_type(out[words:], jnp.float32)
         obs, reward = values[: self.obs_dim], values[self.obs_dim]
         terminated = values[self.obs_dim + 1] > 0.5
         info = dict(zip(self._info_keys, values[self.obs_dim + 2 :], strict=True))
