@@ -634,8 +634,44 @@ def ablation_page(results: list[Result], plots: list[str]) -> str:
             "of ESPL and CSP) have layouts in the code; a results file `results/ablation*.json` "
             "(kind `ablation`) will be shown here.\n"
         )
+    else:
+        out.append(ablation_summary(mine))
     out += [section(r, "##") for r in mine]
     return "".join(out)
+
+
+def ablation_summary(results: list[Result]) -> str:
+    """One table, env x variant: each seed's return in seed order, and for the single-task
+    variants the paper's Table 5 value beside them (the paper shows CSP's ablation as learning
+    curves only)."""
+    cells: dict[str, dict[str, list[dict]]] = {}
+    for r in results:
+        for row in r.rows:
+            cells.setdefault(row["env"], {}).setdefault(row["variant"], []).append(row)
+    out = []
+    for variants in (
+        ("ESPL", "ESPL_p", "ESPL_d", "ESPL_l1"),
+        ("CSP", "CSP_p", "CSP_d", "CSP_l1"),
+    ):
+        envs = sorted(e for e, v in cells.items() if any(k in v for k in variants))
+        if not envs:
+            continue
+        out.append("| env | " + " | ".join(variants) + " |\n")
+        out.append("|---" * (len(variants) + 1) + "|\n")
+        for env in envs:
+            row = [env]
+            for v in variants:
+                runs = sorted(cells[env].get(v, []), key=lambda x: x["seed"])
+                text = " / ".join(fmt(x["return"]) for x in runs) or "—"
+                paper = next((x.get("paper") for x in runs if x.get("paper") is not None), None)
+                row.append(text + (f" (paper {fmt(paper)})" if paper is not None else ""))
+            out.append("| " + " | ".join(row) + " |\n")
+        out.append("\n")
+    return (
+        "Each seed's return, seeds in order (single task: the exported formula; meta-RL: the "
+        "test tasks under PEARL's protocol), and for ESPL the paper's Table 5 value ('paper'). "
+        "Per-seed lengths and runs: the sections below.\n\n" + "".join(out)
+    )
 
 
 # Driver -------------------------------------------------------------------------------------

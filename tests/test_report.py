@@ -129,3 +129,16 @@ def test_the_readme_shows_the_api_tests_example_verbatim():
         if isinstance(node, ast.Assign) and getattr(node.targets[0], "id", None) == "README_EXAMPLE"
     )
     assert f"```python\n{example}```" in (ROOT / "README.md").read_text()
+
+
+def test_the_ablation_summary_puts_each_seed_beside_the_papers_table_5(tree: Path):
+    page = (tree / "docs" / "ablations.md").read_text()
+    assert "| pendulum | -147.25 / -155.30 / -151.47 (paper -151.72) |" in page
+    path = tree / "results" / "ablation_pendulum.json"
+    data = json.loads(path.read_text())
+    first = next(r for r in data["rows"] if r["variant"] == "ESPL" and r["seed"] == 0)
+    first["return"] = -140.5
+    path.write_text(json.dumps(data))
+    subprocess.run([sys.executable, str(REPORT), "--root", str(tree)], check=True, timeout=60)
+    page = (tree / "docs" / "ablations.md").read_text()
+    assert "| pendulum | -140.50 / -155.30 / -151.47 (paper -151.72) |" in page
