@@ -56,10 +56,11 @@ STATE_SPEC = (
 STEP_SPEC = STATE_SPEC | mujoco.mjtState.mjSTATE_CTRL
 MAX_CACHED_MODELS = 512
 MAX_THREADS = 4  # a run has at most a few hundred distinct tasks
-# Handing lanes to a second worker costs ~40 us (the pool) and pays from about 8 lanes on: idle
-# 2-vCPU machine, hopper, one vs two workers: 8.4k vs 7.9k env steps/s at 5 lanes, 12.6k vs 16.1k
-# at 16, 14.7k vs 21.1k at 40 (mj_step runs ~1.3x faster on two threads there, not 2x).
-LANES_PER_WORKER = 8
+# A second worker (the calling thread steps one chunk, the pool the other) pays from about 8
+# lanes on: idle 2-vCPU machine, env steps/s with one vs two workers, hopper 10.7k vs 10.4k at 5
+# lanes, 12.2k vs 15.8k at 8, 14.6k vs 19.3k at 16; walker2d 8.5k vs 9.0k, 9.1k vs 13.2k, 10.9k vs
+# 15.7k (mj_step runs only ~1.3-1.5x faster on the two vCPUs' two threads, not 2x).
+LANES_PER_WORKER = 4
 
 
 @struct.dataclass
