@@ -253,8 +253,9 @@ def _probs_and_rest_optimizer(config: PolicyConfig) -> optax.GradientTransformat
 
 
 @dataclass(frozen=True)
-class StoredSymbolic(Actor):
-    """ESPL: params {"mean": {"w", "b"}, "probs": like w (empty for the L1 ablation), "std"}."""
+class SymbolicActor(Actor):
+    """What both symbolic kinds share: the network of the config's layout, and whether the
+    probabilistic path selector or the L1 ablation prunes it."""
 
     @property
     def symbolic(self) -> SymbolicNetwork:
@@ -263,6 +264,11 @@ class StoredSymbolic(Actor):
     @property
     def uses_selector(self) -> bool:
         return self.config.selector == "probabilistic"
+
+
+@dataclass(frozen=True)
+class StoredSymbolic(SymbolicActor):
+    """ESPL: params {"mean": {"w", "b"}, "probs": like w (empty for the L1 ablation), "std"}."""
 
     @property
     def one_formula(self) -> bool:
@@ -344,7 +350,7 @@ class MLPActor(Actor):
 
 
 @dataclass(frozen=True)
-class GeneratedSymbolic(Actor):
+class GeneratedSymbolic(SymbolicActor):
     """CSP: w, b = Φ(z) and p = σ(Ψ(z)) for all action dims; std net F(s, z) (§4, App. C.2).
 
     Params {"phi_w", "phi_b", "psi": one z → 64 → 64 → n MLP per action dim, "std"}. The task
@@ -356,14 +362,6 @@ class GeneratedSymbolic(Actor):
     policy's "probs" are then all ones, so the export keeps every path with |w| above the
     threshold.
     """
-
-    @property
-    def symbolic(self) -> SymbolicNetwork:
-        return SymbolicNetwork(get_layout(self.config.layout), self.obs_dim, self.action_dim)
-
-    @property
-    def uses_selector(self) -> bool:
-        return self.config.selector == "probabilistic"
 
     def _generators(self) -> tuple[EnsembleMLP, EnsembleMLP, EnsembleMLP]:
         net, a, hidden = self.symbolic, self.action_dim, self.config.generator_hidden
