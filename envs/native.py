@@ -56,11 +56,12 @@ STATE_SPEC = (
 STEP_SPEC = STATE_SPEC | mujoco.mjtState.mjSTATE_CTRL
 MAX_CACHED_MODELS = 512
 MAX_THREADS = 4  # a run has at most a few hundred distinct tasks
-# A second worker (the calling thread steps one chunk, the pool the other) pays from about 8
-# lanes on: idle 2-vCPU machine, env steps/s with one vs two workers, hopper 10.7k vs 10.4k at 5
-# lanes, 12.2k vs 15.8k at 8, 14.6k vs 19.3k at 16; walker2d 8.5k vs 9.0k, 9.1k vs 13.2k, 10.9k vs
-# 15.7k (mj_step runs only ~1.3-1.5x faster on the two vCPUs' two threads, not 2x).
-LANES_PER_WORKER = 4
+# A second worker (the calling thread steps one chunk, the pool the other) from 16 lanes on. On
+# an idle 2-vCPU machine it pays from 8 (env steps/s, one vs two workers, hopper: 10.7k vs 10.4k
+# at 5 lanes, 12.2k vs 15.8k at 8, 14.6k vs 19.3k at 16), but beside other busy processes (two
+# training runs on the 2 vCPUs, as a seed sweep runs) the handoff waits for the scheduler: median
+# 4.4k vs 2.9k at 8 lanes, 4.4k vs 5.3k at 16, 3.8k vs 7.1k at 40.
+LANES_PER_WORKER = 8
 
 
 @struct.dataclass
