@@ -19,7 +19,7 @@ import numpy as np
 from env_throughput import make_run
 
 from espl_jax import envs
-from espl_jax.envs.native import STATE_SPEC, STEP_SPEC
+from espl_jax.envs.native import STATE_SPEC, STEP_SPEC, to_words
 
 name = sys.argv[1]
 env = envs.make(name, physics="native")
@@ -34,13 +34,8 @@ def tick(k, t0):
 
 def host_step(packed):
     t = time.perf_counter()
-    packed = np.asarray(packed)
-    flat = packed.reshape(-1, packed.shape[-1])
-    words = 2 * env.state_size
-    ctrl_end = words + env.action_dim
-    state = np.ascontiguousarray(flat[:, :words]).view(np.float64)
-    ctrl = np.ascontiguousarray(flat[:, words:ctrl_end]).view(np.float32)
-    rows = np.ascontiguousarray(flat[:, ctrl_end:]).view(np.float32)
+    batch, state, rest = env.unpacked(packed)
+    ctrl, rows = rest[:, : env.action_dim], rest[:, env.action_dim :]
     t = tick("in", t)
     n = len(state)
     task = env.task
@@ -68,8 +63,9 @@ def host_step(packed):
     terms = [reward, terminated, *(info[k] for k in env._info_keys)]
     values = np.concatenate([obs, np.stack(terms, axis=-1)], axis=-1)
     t = tick("obs_reward", t)
-    out = np.concatenate([new.view(np.uint32), values.astype(np.float32).view(np.uint32)], 1)
-    out = out.reshape(*packed.shape[:-1], -1)
+    words = to_words(new).reshape(len(new), -1)
+    out = np.concatenate([words, values.astype(np.float32).view(np.uint32)], 1)
+    out = out.reshape(*batch, -1)
     tick("out", t)
     return out
 

@@ -155,7 +155,6 @@ class NativeEnv(Environment):
         self._param_shapes = {
             f: np.shape(getattr(default, f)) for f in default.__dataclass_fields__
         }
-        self._n_params = sum(int(np.prod(shape)) for shape in self._param_shapes.values())
         # One MjData per worker and one model cache, used under a lock: XLA may call back from
         # several threads (one per device), and its callback threads come and go, so MuJoCo
         # objects must not live in thread-locals (their teardown outside Python crashes).
@@ -253,16 +252,22 @@ class NativeEnv(Environment):
         """Every lane's step, batch axes leading: uint32 ``[words, ctrl bits, params bits]`` ->
         ``[new words, float32 bits of obs, reward, terminated, info...]``; the callback behind
         ``step``."""
+        batch, state, rest = self.unpacked(packed)
+        ctrl, rows = rest[:, : self.action_dim], rest[:, self.action_dim :]
+        new, values = self.host_step64(state, ctrl, rows)
+        words = to_words(new).reshape(len(new), -1)
+        out = np.concatenate([words, values.astype(np.float32).view(np.uint32)], 1)
+        return out.reshape(*batch, -1)
+
+    def unpacked(self, packed: np.ndarray) -> tuple[tuple, np.ndarray, np.ndarray]:
+        """``_packed``'s host side: (batch shape, float64 states [n, state_size], the float32
+        values after the words [n, k])."""
         packed = np.asarray(packed)
         flat = packed.reshape(-1, packed.shape[-1])
         words = 2 * self.state_size
-        ctrl_end = words + self.action_dim
-        state = np.ascontiguousarray(flat[:, :words]).view(np.float64)
-        ctrl = np.ascontiguousarray(flat[:, words:ctrl_end]).view(np.float32)
-        rows = np.ascontiguousarray(flat[:, ctrl_end:]).view(np.float32)
-        new, values = self.host_step64(state, ctrl, rows)
-        out = np.concatenate([new.view(np.uint32), values.astype(np.float32).view(np.uint32)], 1)
-        return out.reshape(*packed.shape[:-1], -1)
+        state = from_words(flat[:, :words].reshape(len(flat), self.state_size, 2))
+        rest = np.ascontiguousarray(flat[:, words:]).view(np.float32)
+        return packed.shape[:-1], state, rest
 
     def host_step64(
         self, state: np.ndarray, ctrl: np.ndarray, rows: np.ndarray
@@ -316,11 +321,7 @@ class NativeEnv(Environment):
         """Every lane's observation after ``mj_forward`` (for tasks whose first observation
         needs derived quantities, as gymnasium's ``set_state`` computes them): uint32 ``[words,
         params bits]`` -> float32 obs."""
-        packed = np.asarray(packed)
-        flat = packed.reshape(-1, packed.shape[-1])
-        words = 2 * self.state_size
-        state = np.ascontiguousarray(flat[:, :words]).view(np.float64)
-        rows = np.ascontiguousarray(flat[:, words:]).view(np.float32)
+        batch, state, rows = self.unpacked(packed)
         n = len(state)
         with self._lock:
             models, _ = self._batch(rows)
@@ -332,7 +333,7 @@ class NativeEnv(Environment):
                 for name in HOOK_FIELDS:
                     getattr(fields, name)[i] = getattr(data, name)
         obs = self.task._obs(fields, np)
-        return np.asarray(obs, np.float32).reshape(*packed.shape[:-1], self.obs_dim)
+        return np.asarray(obs, np.float32).reshape(*batch, self.obs_dim)
 
     # JAX side ------------------------------------------------------------------------------
 
