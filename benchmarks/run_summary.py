@@ -22,7 +22,15 @@ from espl_jax import config as config_lib
 from espl_jax import rundir
 
 # Config keys a row records when they differ from the defaults (what a comparison varies).
-VARIED = ("critic", "critic_layer_norm", "critic_hidden", "updates_per_iteration", "iterations")
+VARIED = (
+    "critic",
+    "critic_layer_norm",
+    "critic_hidden",
+    "updates_per_iteration",
+    "iterations",
+    "schedule_iterations",
+    "keep_best_formula",
+)
 
 
 def summary(run_dir: Path) -> dict:
