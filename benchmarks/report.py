@@ -274,11 +274,20 @@ def paper_rows(results: list[Result], table_name: str) -> dict[str, dict]:
     }
 
 
+def headline(results: list[Result]) -> list[Result]:
+    """What the README's headline tables read: a probe of another budget or config, a whole file
+    or one row marked ``"headline": false``, stays on its docs page and out of the README."""
+    out = []
+    for res in results:
+        if res.data.get("headline", True):
+            rows = [r for r in res.rows if r.get("headline", True)]
+            out.append(Result(res.name, {**res.data, "rows": rows}))
+    return out
+
+
 def single_headline(results: list[Result], link: str) -> str:
     gs = [
-        g
-        for g in groups(results, "single_task", single_return)
-        if g.actor == "symbolic" and g.res.data.get("headline", True)
+        g for g in groups(headline(results), "single_task", single_return) if g.actor == "symbolic"
     ]
     bar, paper = bars(results), paper_rows(results, "single_task")
     rows = []
@@ -404,8 +413,7 @@ def meta_cell(values: tuple) -> str:
 
 
 def meta_headline(results: list[Result], link: str) -> str:
-    # A probe of another budget or config ("headline": false) is on the page, not in the README.
-    gs = [g for g in groups(results, "meta_rl", meta_value) if g.res.data.get("headline", True)]
+    gs = groups(headline(results), "meta_rl", meta_value)
     keys = sorted({(g.env, g.physics, g.res.name) for g in gs}, key=lambda k: k[2])
     rows = []
     for env in order({k[0] for k in keys}, FAMILIES):

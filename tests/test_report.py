@@ -91,6 +91,22 @@ def test_a_probe_is_on_its_page_but_not_in_the_readme(tree: Path):
     assert cell in (tree / "README.md").read_text()
 
 
+def test_a_row_marked_off_the_headline_stays_on_its_page(tree: Path):
+    # "headline": false on one row (a run of an older config in a file of several envs).
+    path = tree / "results" / "single_task_single_runs.json"
+    data = json.loads(path.read_text())
+    walker = next(
+        r for r in data["rows"] if r["env"] == "bipedalwalker" and r["actor"] == "symbolic"
+    )
+    cell = f"| bipedalwalker | 1 run (seed 0) | {walker['return']:.2f} |"
+    assert cell in (tree / "README.md").read_text()
+    walker["headline"] = False
+    path.write_text(json.dumps(data))
+    subprocess.run([sys.executable, str(REPORT), "--root", str(tree)], check=True, timeout=60)
+    assert cell not in (tree / "README.md").read_text()
+    assert f"{walker['return']:.2f}" in (tree / "docs" / "single_task.md").read_text()
+
+
 def test_the_meta_rl_deployment_table_sits_beside_the_papers(tree: Path):
     # deploy.py --run CSP_DIR rows of a family: CSP (median test task), PEARL, Hyper per impl.
     def row(method: str, impl: str, flops: int, ms: float, **extra) -> str:
