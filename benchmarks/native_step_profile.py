@@ -19,7 +19,7 @@ import numpy as np
 from env_throughput import make_run
 
 from espl_jax import envs
-from espl_jax.envs.native import STATE_SPEC, STEP_SPEC, to_words
+from espl_jax.envs.native import STATE_SPEC, STEP_SPEC
 
 name = sys.argv[1]
 env = envs.make(name, physics="native")
@@ -63,9 +63,7 @@ def host_step(packed):
     terms = [reward, terminated, *(info[k] for k in env._info_keys)]
     values = np.concatenate([obs, np.stack(terms, axis=-1)], axis=-1)
     t = tick("obs_reward", t)
-    words = to_words(new).reshape(len(new), -1)
-    out = np.concatenate([words, values.astype(np.float32).view(np.uint32)], 1)
-    out = out.reshape(*batch, -1)
+    out = env.packed_out(batch, new, values)
     tick("out", t)
     return out
 

@@ -254,10 +254,7 @@ class NativeEnv(Environment):
         ``step``."""
         batch, state, rest = self.unpacked(packed)
         ctrl, rows = rest[:, : self.action_dim], rest[:, self.action_dim :]
-        new, values = self.host_step64(state, ctrl, rows)
-        words = to_words(new).reshape(len(new), -1)
-        out = np.concatenate([words, values.astype(np.float32).view(np.uint32)], 1)
-        return out.reshape(*batch, -1)
+        return self.packed_out(batch, *self.host_step64(state, ctrl, rows))
 
     def unpacked(self, packed: np.ndarray) -> tuple[tuple, np.ndarray, np.ndarray]:
         """``_packed``'s host side: (batch shape, float64 states [n, state_size], the float32
@@ -268,6 +265,14 @@ class NativeEnv(Environment):
         state = from_words(flat[:, :words].reshape(len(flat), self.state_size, 2))
         rest = np.ascontiguousarray(flat[:, words:]).view(np.float32)
         return packed.shape[:-1], state, rest
+
+    @staticmethod
+    def packed_out(batch: tuple, new: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """``unpacked``'s inverse for the step's output: float64 states [n, state_size] and
+        values [n, k] -> uint32 ``[new words, float32 bits of values]`` with batch axes leading."""
+        words = to_words(new).reshape(len(new), -1)
+        out = np.concatenate([words, values.astype(np.float32).view(np.uint32)], 1)
+        return out.reshape(*batch, -1)
 
     def host_step64(
         self, state: np.ndarray, ctrl: np.ndarray, rows: np.ndarray
