@@ -30,6 +30,7 @@ VARIED = (
     "iterations",
     "schedule_iterations",
     "keep_best_formula",
+    "target_l0_ratio",
 )
 
 
