@@ -763,8 +763,8 @@ def physics_headline(results: list[Result], link: str) -> str:
             mjx, native = wall["mjx"], wall["native"]
             share = native["wall_seconds_training"] / mjx["wall_seconds_training"]
             out.append(
-                f"\nA whole default `{native['env']}` run (seed {native['seed']}, compile "
-                f"included): {fmt(native['wall_seconds_training'])} s of training native against "
+                f"\nA whole `{native['env']}` run ({native['iterations']} iterations, seed "
+                f"{native['seed']}, compile included): {fmt(native['wall_seconds_training'])} s of training native against "
                 f"{fmt(mjx['wall_seconds_training'])} s MJX ({100 * share:.0f} %), test return "
                 f"{fmt(native['test_return'])} against {fmt(mjx['test_return'])}. "
                 f"[data]({link}#{anchor(run.title)})\n"

@@ -79,14 +79,14 @@ def test_a_new_results_file_of_the_same_schema_shows_up(tree: Path):
 
 def test_a_probe_is_on_its_page_but_not_in_the_readme(tree: Path):
     # "headline": false keeps a run of another budget out of the README's headline table.
-    probe = json.loads((tree / "results" / "hopper_params_10x_probe.json").read_text())
+    probe = json.loads((tree / "results" / "walker2d_params_10x_probe.json").read_text())
     assert probe["headline"] is False
     returns = [r["test_return"] for r in probe["rows"]]
     cell = f"[{min(returns):.2f}, {max(returns):.2f}]"  # the headline cell's seed interval
     page, readme = (tree / "docs" / "meta_rl.md").read_text(), (tree / "README.md").read_text()
     assert f"{returns[0]:.2f}" in page and cell not in readme
     probe["headline"] = True
-    (tree / "results" / "hopper_params_10x_probe.json").write_text(json.dumps(probe))
+    (tree / "results" / "walker2d_params_10x_probe.json").write_text(json.dumps(probe))
     subprocess.run([sys.executable, str(REPORT), "--root", str(tree)], check=True, timeout=60)
     assert cell in (tree / "README.md").read_text()
 
