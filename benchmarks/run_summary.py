@@ -1,6 +1,7 @@
 """Collect finished runs' headline figures into one results JSON (results as data, not prose).
 
-For each run directory: the command that reproduces it (from its config.yaml), its seed, physics
+For each run directory (each seed of a vmapped meta-RL run): the command that reproduces it (from
+its config.yaml; ``config`` holds the keys it varies from the defaults), its seed, physics
 backend, budget, training wall time and returns (meta-RL: the protocol's test and train means;
 single task: the exported policy's JAX return and policy.py's reference return)::
 
@@ -34,14 +35,19 @@ VARIED = (
 )
 
 
-def summary(run_dir: Path) -> dict:
+def summary(run_dir: Path) -> list[dict]:
+    """The run's rows: one, or for a meta-RL run of several vmapped seeds one per seed (each
+    seed's protocol returns and its own learning curve; the formula's length and paths only on
+    the kept seed's row, the only one exported). A single-task run stays one row (its kept
+    seed), as its eval.json reports."""
     cfg = config_lib.load(run_dir / "config.yaml")
     record = json.loads((run_dir / "eval.json").read_text())
+    seeds = f"--seeds {cfg.seeds} " if cfg.seeds != 1 else ""
     row = {
         "run": str(run_dir),
         "command": (
-            f"python -m espl_jax.train --env {cfg.env} --actor {cfg.actor} --seed {cfg.seed} "
-            f"--physics {cfg.physics}"
+            f"python -m espl_jax.train --env {cfg.env} --actor {cfg.actor} {seeds}"
+            f"--seed {cfg.seed} --physics {cfg.physics}"
         ),
         "env": cfg.env,
         "actor": cfg.actor,
@@ -57,22 +63,53 @@ def summary(run_dir: Path) -> dict:
         for k in VARIED
         if getattr(cfg, k) != getattr(defaults, k)
     }
-    # The learning curve: (env steps, mean progress-evaluation return) after each chunk.
-    curve = {}
-    for m in rundir.read_metrics(run_dir / rundir.METRICS_FILE):
-        if m.get("eval_return") is not None:
-            curve[m["env_steps"]] = m["eval_return"]
-    row["curve"] = sorted(curve.items())
-    if "test" in record:
-        row |= {"test_return": record["test"]["mean"], "train_return": record["train"]["mean"]}
-        row |= {k: record[k] for k in ("length", "selected_paths_per_action") if k in record}
-    else:
+    metrics = rundir.read_metrics(run_dir / rundir.METRICS_FILE)
+    row["curve"] = curve(metrics, record.get("best_seed", 0))
+    if "test" not in record:
         row["jax_return"] = record["jax_eval"]["mean"]
         if "reference_eval" in record:
             row["reference_return"] = record["reference_eval"]["mean"]
         if "length" in record:
             row["length"] = record["length"]
-    return row
+        return [row]
+    row |= {"test_return": record["test"]["mean"], "train_return": record["train"]["mean"]}
+    row |= {k: record[k] for k in ("length", "selected_paths_per_action") if k in record}
+    if cfg.seeds == 1:
+        return [row]
+    rows = []
+    for entry in record["per_seed"]:  # "seed" there is the index in the vmapped batch
+        seed = cfg.seed + entry["seed"]
+        kept = entry["seed"] == record["best_seed"]
+        other = {
+            "seed": seed,
+            "test_return": entry["test_return"],
+            "train_return": entry["train_return"],
+            "curve": curve(metrics, entry["seed"]),
+        }
+        rows.append(
+            {
+                **{
+                    k: v
+                    for k, v in row.items()
+                    if kept or k not in ("length", "selected_paths_per_action")
+                },
+                **other,
+                "vmapped_seeds": cfg.seeds,
+                "kept": kept,
+            }
+        )
+    return rows
+
+
+def curve(metrics: list[dict], index: int) -> list:
+    """(env steps, progress-evaluation return) after each chunk, of the seed at ``index`` in the
+    run's vmapped batch (metrics.jsonl's "seed")."""
+    points = {
+        m["env_steps"]: m["eval_return"]
+        for m in metrics
+        if m.get("eval_return") is not None and m.get("seed", index) == index
+    }
+    return sorted(points.items())
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -81,7 +118,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--label", default="", help="what the runs are, for the reader")
     parser.add_argument("--json", required=True)
     args = parser.parse_args(argv)
-    rows = [summary(d) for d in args.runs]
+    rows = [row for d in args.runs for row in summary(d)]
     for row in rows:
         row["label"] = args.label
         print(json.dumps(row))
