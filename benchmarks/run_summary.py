@@ -72,32 +72,23 @@ def summary(run_dir: Path) -> list[dict]:
         if "length" in record:
             row["length"] = record["length"]
         return [row]
-    row |= {"test_return": record["test"]["mean"], "train_return": record["train"]["mean"]}
-    row |= {k: record[k] for k in ("length", "selected_paths_per_action") if k in record}
+    # Only the kept seed's formula is exported, so only its row has a length and paths.
+    exported = {k: record[k] for k in ("length", "selected_paths_per_action") if k in record}
     if cfg.seeds == 1:
-        return [row]
+        returns = {"test_return": record["test"]["mean"], "train_return": record["train"]["mean"]}
+        return [row | returns | exported]
     rows = []
     for entry in record["per_seed"]:  # "seed" there is the index in the vmapped batch
-        seed = cfg.seed + entry["seed"]
         kept = entry["seed"] == record["best_seed"]
-        other = {
-            "seed": seed,
+        mine = {
+            "seed": cfg.seed + entry["seed"],
             "test_return": entry["test_return"],
             "train_return": entry["train_return"],
             "curve": curve(metrics, entry["seed"]),
+            "vmapped_seeds": cfg.seeds,
+            "kept": kept,
         }
-        rows.append(
-            {
-                **{
-                    k: v
-                    for k, v in row.items()
-                    if kept or k not in ("length", "selected_paths_per_action")
-                },
-                **other,
-                "vmapped_seeds": cfg.seeds,
-                "kept": kept,
-            }
-        )
+        rows.append(row | mine | (exported if kept else {}))
     return rows
 
 
