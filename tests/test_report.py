@@ -43,8 +43,9 @@ def test_committed_docs_are_what_the_results_generate():
     ("path", "old", "new"),
     [
         ("docs/single_task.md", "**5/5** ≥ 990", "**4/5** ≥ 990"),
-        ("docs/meta_rl.md", "188.37", "198.37"),
-        ("README.md", "188.37", "189.37"),
+        # The meta-RL headline table's header, which new results do not change.
+        ("docs/meta_rl.md", "| family | CSP |", "| family | CSP (edited) |"),
+        ("README.md", "| family | CSP |", "| family | CSP (edited) |"),
     ],
 )
 def test_a_hand_edited_table_fails_the_check(tree: Path, path: str, old: str, new: str):
