@@ -99,6 +99,12 @@ def test_a_row_marked_off_the_headline_stays_on_its_page(tree: Path):
     walker = next(
         r for r in data["rows"] if r["env"] == "bipedalwalker" and r["actor"] == "symbolic"
     )
+    # Put the row on the headline, as the only bipedalwalker run, then take it off.
+    walker.pop("headline", None)
+    path.write_text(json.dumps(data))
+    for other in (tree / "results").glob("bipedalwalker_*.json"):
+        other.unlink()
+    subprocess.run([sys.executable, str(REPORT), "--root", str(tree)], check=True, timeout=60)
     cell = f"| bipedalwalker | 1 run (seed 0) | {walker['return']:.2f} |"
     assert cell in (tree / "README.md").read_text()
     walker["headline"] = False
