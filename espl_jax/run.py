@@ -154,8 +154,15 @@ def _train(
         start = 0
 
     end = config.iterations if stop_after is None else min(stop_after, config.iterations)
-    started = time.perf_counter()
     warnings: list[str] = []
+    earlier_seconds = 0.0 if start == 0 else rundir.training_seconds_before(out, start)
+    if earlier_seconds is None:
+        earlier_seconds = 0.0
+        warnings.append(
+            f"{rundir.TIMING_FILE} has no time for iteration {start}: wall_seconds_training "
+            "counts only the training after this resume"
+        )
+    started = time.perf_counter() - earlier_seconds
     run_chunk = chunk_runner(trainer)
     progress_eval = progress_evaluator(trainer)
     bar = tqdm(
@@ -189,6 +196,9 @@ def _train(
             iteration += length
             if keeps_hall_of_fame(trainer):
                 state = record_hall_of_fame(trainer, state, eval_returns, iteration, out)
+            # Before the checkpoint: a kill between the two resumes from the older checkpoint,
+            # whose time is still in timing.json.
+            rundir.record_training_seconds(out, iteration, time.perf_counter() - started)
             checkpoint.save(mngr, iteration, state)
             rundir.warn_on_failure(
                 warnings, "learning-curve plot", rundir.plot_learning_curve,

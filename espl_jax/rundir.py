@@ -36,6 +36,8 @@ EVAL_FILE = "eval.json"
 POLICY_FILE = "policy.py"
 EXPRESSION_FILE = "expression.txt"
 CURVE_FILE = "learning_curve.png"
+# Training seconds up to each checkpoint, so a resumed run reports the time of all its parts.
+TIMING_FILE = "timing.json"
 
 
 def write_atomic(path: Path, text: str) -> None:
@@ -48,6 +50,30 @@ def write_atomic(path: Path, text: str) -> None:
 def write_json(path: Path, record: dict[str, Any]) -> None:
     """A run-directory JSON file, written atomically."""
     write_atomic(path, json.dumps(record, indent=2) + "\n")
+
+
+def record_training_seconds(run_dir: Path, iteration: int, seconds: float) -> None:
+    """Note in timing.json that the run had trained ``seconds`` when it saved the checkpoint of
+    ``iteration``. Entries after ``iteration`` (from a part that a resume discarded) are dropped."""
+    kept = {k: v for k, v in _timing(run_dir).items() if int(k) < iteration}
+    kept[str(iteration)] = round(seconds, 1)
+    write_json(run_dir / TIMING_FILE, kept)
+
+
+def training_seconds_before(run_dir: Path, iteration: int) -> float | None:
+    """Training seconds the run had spent when it saved the checkpoint of ``iteration``; None if
+    timing.json does not say (deleted, or a run from before the file existed)."""
+    return _timing(run_dir).get(str(iteration))
+
+
+def _timing(run_dir: Path) -> dict[str, float]:
+    try:
+        record = json.loads((run_dir / TIMING_FILE).read_text())
+    except (OSError, ValueError):  # missing or cut short: the times are unknown, not an error
+        return {}
+    if not isinstance(record, dict):
+        return {}
+    return {k: v for k, v in record.items() if k.isdigit() and isinstance(v, int | float)}
 
 
 def write_eval(run_dir: Path, result: dict[str, Any], warnings: list[str]) -> None:

@@ -445,7 +445,7 @@ def test_export_without_eval_json_exports_seed_0(finished_run, tmp_path, capfd):
 
 RUN_FILES = (".lock", "checkpoints", "config.yaml", "eval.json", "expression.txt",
              "formulas.jsonl", "hall_of_fame.png", "learning_curve.png", "metrics.jsonl",
-             "policy.py")  # fmt: skip
+             "policy.py", "timing.json")  # fmt: skip
 COMMANDS = {
     "evaluate": ("evaluate", "{run}", "--episodes", "2"),
     "export": ("export", "{run}"),

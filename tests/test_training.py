@@ -183,7 +183,12 @@ def test_resume_is_bitwise_deterministic(full_run, stopped_run, tmp_path):
     run_dir = tmp_path / "run"
     shutil.copytree(stopped_run, run_dir)
     assert load_params(run_dir)[0] == 2
+    before_resume = rundir.training_seconds_before(run_dir, 2)
+    assert before_resume is not None and before_resume > 0
     result = run.train(tiny(), run_dir, resume=True, show_progress=False)
+    # The reported time is both parts' (the first part's and the resumed one's), not the last.
+    assert result["training"]["wall_seconds_training"] > before_resume
+    assert sorted(json.loads((run_dir / rundir.TIMING_FILE).read_text())) == ["2", "4"]
     records = []
 
     full_dir, full_result = full_run
@@ -205,6 +210,21 @@ def test_resume_is_bitwise_deterministic(full_run, stopped_run, tmp_path):
     assert (run_dir / rundir.EXPRESSION_FILE).read_text() == (
         full_dir / rundir.EXPRESSION_FILE
     ).read_text()
+
+
+def test_timing_file_keeps_the_time_of_each_checkpoint_a_resume_can_start_from(tmp_path):
+    for iteration, seconds in ((2, 10.0), (4, 20.0), (6, 30.0)):
+        rundir.record_training_seconds(tmp_path, iteration, seconds)
+    assert rundir.training_seconds_before(tmp_path, 4) == 20.0
+    # Resumed from 4: the part that had reached 6 is discarded with its time.
+    rundir.record_training_seconds(tmp_path, 6, 25.0)
+    rundir.record_training_seconds(tmp_path, 8, 35.0)
+    assert json.loads((tmp_path / rundir.TIMING_FILE).read_text()) == {
+        "2": 10.0, "4": 20.0, "6": 25.0, "8": 35.0,
+    }  # fmt: skip
+    assert rundir.training_seconds_before(tmp_path, 3) is None
+    (tmp_path / rundir.TIMING_FILE).write_text('{"2": 1')  # cut short: unknown, not an error
+    assert rundir.training_seconds_before(tmp_path, 2) is None
 
 
 @pytest.mark.slow  # recompiles the chunk for the new reward scale
