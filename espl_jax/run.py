@@ -155,7 +155,9 @@ def _train(
 
     end = config.iterations if stop_after is None else min(stop_after, config.iterations)
     warnings: list[str] = []
-    earlier_seconds = 0.0 if start == 0 else rundir.training_seconds_before(out, start)
+    # Read from run_dir, which every process shares (the checkpoints are there): only process 0
+    # writes timing.json, and the others' ``out`` is a scratch directory without it.
+    earlier_seconds = 0.0 if start == 0 else rundir.training_seconds_before(run_dir, start)
     if earlier_seconds is None:
         earlier_seconds = 0.0
         warnings.append(
