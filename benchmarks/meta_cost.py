@@ -17,6 +17,7 @@ Compile times are printed beside (the first call minus a timed one). Prints a ma
     python benchmarks/meta_cost.py --env hopper_params --actors symbolic --physics mjx,native
     python benchmarks/meta_cost.py --env hopper --actors symbolic --physics mjx,native \
         --json results/iteration_cost_hopper.json
+    python benchmarks/meta_cost.py --env hopper_params --actors hyper --config small_trunk.yaml
 
 Not part of the test suite (CI never runs ``benchmarks/``).
 """
@@ -47,14 +48,21 @@ def _timed(fn, *args, repeats: int):
     return first, best, out
 
 
-def measure(env: str, actor: str, updates: int, repeats: int, physics: str = "auto") -> dict:
-    shipped = config_lib.resolve(env=env, actor=actor, physics=physics)
+def measure(
+    env: str,
+    actor: str,
+    updates: int,
+    repeats: int,
+    physics: str = "auto",
+    config_file: str | None = None,
+) -> dict:
+    shipped = config_lib.resolve(env=env, config_file=config_file, actor=actor, physics=physics)
     overrides = dict(env=env, actor=actor, physics=physics, updates_per_iteration=updates)
     if envs.is_family(env):
         # A short initial collection: it only has to put data in the buffers (whose size, and
         # so the cost of sampling them, does not depend on how full they are).
         overrides["initial_steps"] = 200
-    trainer = Trainer(config_lib.resolve(**overrides))
+    trainer = Trainer(config_lib.resolve(config_file=config_file, **overrides))
     state = trainer.init_seeds()
     state = jax.block_until_ready(trainer.compiled_warmup()(state))
     key = jax.random.PRNGKey(1)
@@ -79,6 +87,7 @@ def measure(env: str, actor: str, updates: int, repeats: int, physics: str = "au
     return {
         "env": env,
         "actor": actor,
+        "config": config_file,
         "physics": trainer.physics,
         "collect_s": c_best,
         "collect_compile_s": c_first - c_best,
@@ -100,13 +109,16 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--physics", default="auto", help="comma-separated: auto, mjx, native")
     parser.add_argument("--updates", type=int, default=50)
     parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument(
+        "--config", help="a YAML file over configs/ENV.yaml (as train's --config), e.g. a variant"
+    )
     parser.add_argument("--json", help="also write the rows, command and machine here")
     args = parser.parse_args(argv)
     rows = []
     for env in args.env.split(","):
         for a in args.actors.split(","):
             for p in args.physics.split(","):
-                rows.append(measure(env, a, args.updates, args.repeats, p))
+                rows.append(measure(env, a, args.updates, args.repeats, p, args.config))
                 print(rows[-1], flush=True)
     print(f"\n{args.updates} updates per timed call, best of {args.repeats}\n")
     print(

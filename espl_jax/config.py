@@ -296,6 +296,13 @@ class Config:
     pearl_hidden: tuple[int, ...] = META(
         (300, 300, 300), "Hidden layers of PEARL's policy on s ⊕ z.", None, unchecked=_SIZES
     )
+    hyper_trunk: tuple[int, ...] = META(
+        (256, 512, 1024),
+        "Widths of Hyper's hypernetwork trunk, two residual blocks at each (HypeRL's 256, 512, "
+        "1024); the weight heads read its last width, so it sets most of the weight count.",
+        None,
+        unchecked=_SIZES,
+    )
     hyper_policy_hidden: int = META(
         256,
         "Hidden width of the policy network s → hidden → (μ, log σ) that Hyper's hypernetwork "

@@ -14,8 +14,8 @@ the paper's (App. C, D) and the reference code's:
   (z → 64 → 64 → n, uniform ±1/√fan-in init, Ψ's last bias 3.0 so σ(3) ≈ 0.95 of the paths start
   active, paper App. C.2).
 - ``HyperNetwork``: Hyper (Sarafian et al. 2021; keynans/HypeRL) — z → 256 → 2 ResBlocks → 512 →
-  2 ResBlocks → 1024 → 2 ResBlocks, with heads that generate the weights of a one-hidden-layer
-  (256) policy on s with separate μ and log σ outputs.
+  2 ResBlocks → 1024 → 2 ResBlocks (the widths configurable), with heads that generate the weights
+  of a one-hidden-layer (256) policy on s with separate μ and log σ outputs.
 """
 
 from __future__ import annotations
@@ -198,6 +198,9 @@ class _ResBlock(nn.Module):
 class HyperNetwork(nn.Module):
     """z (L,) → the weights of a policy network s → 256 → (μ, log σ) (Sarafian et al. 2021).
 
+    ``trunk``: the residual trunk's widths, two blocks at each (HypeRL's 256, 512, 1024 by
+    default; the laptop MuJoCo configs may shrink it, ``Config.hyper_trunk``).
+
     Returns a dict {"w1": (obs, 256), "b1": (256,), "w_mean": (256, A), "b_mean": (A,),
     "w_log_std": (256, A), "b_log_std": (A,)}. The generated layers are scaled by
     1/√fan-in so the generated policy starts at the scale of a normally initialised one.
@@ -206,11 +209,12 @@ class HyperNetwork(nn.Module):
     obs_dim: int
     action_dim: int
     hidden: int = 256
+    trunk: Sequence[int] = (256, 512, 1024)
 
     @nn.compact
     def __call__(self, z: jax.Array) -> dict[str, jax.Array]:
-        x = nn.Dense(256)(z)
-        for width in (256, 512, 1024):
+        x = nn.Dense(self.trunk[0])(z)
+        for width in self.trunk:
             if x.shape[-1] != width:
                 x = nn.Dense(width)(x)
             x = _ResBlock()(_ResBlock()(x))

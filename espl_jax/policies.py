@@ -51,6 +51,7 @@ class PolicyConfig:
     mlp_actor_hidden: tuple[int, ...]
     generator_hidden: tuple[int, ...]
     pearl_hidden: tuple[int, ...]
+    hyper_trunk: tuple[int, ...]
     hyper_policy_hidden: int
     squash_epsilon: float
     grad_clip: float
@@ -473,7 +474,10 @@ class HyperActor(Actor):
     """Hyper: z → hypernetwork → the weights of a one-hidden-layer (256) policy on s."""
 
     def _hyper(self) -> HyperNetwork:
-        return HyperNetwork(self.obs_dim, self.action_dim, self.config.hyper_policy_hidden)
+        cfg = self.config
+        return HyperNetwork(
+            self.obs_dim, self.action_dim, cfg.hyper_policy_hidden, tuple(cfg.hyper_trunk)
+        )
 
     def init(self, key: jax.Array) -> Params:
         return {"hyper": self._hyper().init(key, jnp.zeros((self.latent_dim,)))}

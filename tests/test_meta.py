@@ -128,6 +128,52 @@ def test_one_meta_update_trains_the_encoder_through_the_critic(meta_trainer):
         assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(tree))
 
 
+def _hyper_weight_count(obs: int, act: int, latent: int, trunk, hidden: int = 256) -> int:
+    """Weights of HypeRL's hypernetwork, counted by hand: z → trunk[0], two residual blocks (two
+    square layers each) per width with a projection between widths, then the six heads."""
+    dense = lambda i, o: i * o + o  # noqa: E731
+    n = dense(latent, trunk[0])
+    for prev, width in zip((trunk[0], *trunk), trunk, strict=False):
+        n += (dense(prev, width) if prev != width else 0) + 4 * dense(width, width)
+    heads = obs * hidden + hidden + 2 * (hidden * act + act)
+    return n + dense(trunk[-1], heads)  # six Dense heads = one of their summed width
+
+
+@pytest.mark.parametrize(("trunk", "expected_millions"), [((256, 512, 1024), 10.9), ((256,), 1.45)])
+def test_hyper_network_has_hyperl_weight_count_and_a_configurable_trunk(trunk, expected_millions):
+    """hopper_params' sizes (11 observations, 3 actions, latent 5): HypeRL's trunk gives the
+    10.9M weights that make Hyper ~3x PEARL per iteration here; one width of 256 gives ~1.45M."""
+    cfg = config_lib.from_mapping(
+        {"env": "hopper_params", "actor": "hyper", "hyper_trunk": list(trunk)}
+    )
+    trainer = Trainer(cfg)
+    params = trainer.actor.init(jax.random.PRNGKey(0))
+    count = sum(int(np.prod(x.shape)) for x in jax.tree.leaves(params))
+    obs, act, latent = trainer.env.obs_dim, trainer.env.action_dim, trainer.actor.latent_dim
+    assert (obs, act) == (11, 3)
+    assert count == _hyper_weight_count(obs, act, latent, trunk)
+    assert count / 1e6 == pytest.approx(expected_millions, abs=0.05)
+    weights = trainer.actor.generate(params, jnp.ones(latent))
+    assert weights["w1"].shape == (obs, 256) and weights["w_mean"].shape == (256, act)
+    mean, log_std, _ = trainer.actor.mean_and_log_std(
+        trainer.actor.policy(params, weights), None, jnp.ones(obs)
+    )
+    assert mean.shape == log_std.shape == (act,) and bool(jnp.isfinite(mean).all())
+
+
+def test_one_hyper_update_moves_the_hypernetwork_and_the_encoder():
+    trainer = Trainer(
+        config_lib.from_mapping({**META_TINY, "actor": "hyper", "hyper_trunk": [16, 32]})
+    )
+    state = jax.jit(trainer.warmup)(jax.jit(trainer.init)(jax.random.PRNGKey(0)))
+    tau, l_min = trainer.iteration.schedules(jnp.asarray(0))
+    new, metrics = jax.jit(trainer.sac.update)(state, jax.random.PRNGKey(1), tau, l_min)
+    assert np.isfinite(float(metrics["actor_loss"])) and np.isfinite(float(metrics["kl"]))
+    for old_tree, new_tree in ((state.actor, new.actor), (state.encoder, new.encoder)):
+        moved = jax.tree.map(lambda a, b: float(jnp.abs(a - b).max()), new_tree, old_tree)
+        assert max(jax.tree.leaves(moved)) > 0
+
+
 # The protocol on a probe env ---------------------------------------------------------------
 
 
