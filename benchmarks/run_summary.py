@@ -32,6 +32,7 @@ VARIED = (
     "schedule_iterations",
     "keep_best_formula",
     "target_l0_ratio",
+    "hyper_trunk",  # recorded on Hyper's rows only: the other kinds never read it
 )
 
 
@@ -61,7 +62,7 @@ def summary(run_dir: Path) -> list[dict]:
     row["config"] = {
         k: config_lib._plain(getattr(cfg, k))
         for k in VARIED
-        if getattr(cfg, k) != getattr(defaults, k)
+        if getattr(cfg, k) != getattr(defaults, k) and (k != "hyper_trunk" or cfg.actor == "hyper")
     }
     metrics = rundir.read_metrics(run_dir / rundir.METRICS_FILE)
     row["curve"] = curve(metrics, record.get("best_seed", 0))
