@@ -475,9 +475,7 @@ class HyperActor(Actor):
 
     def _hyper(self) -> HyperNetwork:
         cfg = self.config
-        return HyperNetwork(
-            self.obs_dim, self.action_dim, cfg.hyper_policy_hidden, tuple(cfg.hyper_trunk)
-        )
+        return HyperNetwork(self.obs_dim, self.action_dim, cfg.hyper_policy_hidden, cfg.hyper_trunk)
 
     def init(self, key: jax.Array) -> Params:
         return {"hyper": self._hyper().init(key, jnp.zeros((self.latent_dim,)))}
